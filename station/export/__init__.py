@@ -1,0 +1,1 @@
+"""Splat and mesh writers, the quality gate and the report."""

@@ -1,0 +1,1 @@
+"""Gaussian rasteriser, 3DGS/NGS trainer, infill and the Surface Opacity Score."""

@@ -1,0 +1,1 @@
+"""Turntable drivers (GRBL 1.1 / grblHAL over pyserial)."""
