@@ -1,0 +1,1 @@
+"""Overnight batch: the SQLite job store, the runner and its executors."""

@@ -1,0 +1,197 @@
+"""Thin, typed wrappers over pycolmap 4.2 for the posing stage.
+
+Turntable scans fool plain SfM (the static backdrop matches in every pair), so features are
+only extracted inside the masks. Poses are expressed as OpenCV camera-to-world 4x4 matrices
+everywhere outside this module; COLMAP's world-to-camera `Rigid3d` never leaks out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from station.errors import BadInputError
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels (no distortion: our images are developed undistorted)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, width: int, height: int) -> "Intrinsics":
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+
+
+@dataclass(frozen=True)
+class SfmSettings:
+    max_features: int = 4096
+    mask_erode_px: int = 2  # features on the silhouette edge see the backdrop: drop them
+    num_threads: int = 2
+    max_runtime_s: float = 600.0
+    min_track_angle_deg: float = 1.5
+
+
+def write_colmap_masks(masks: dict[str, np.ndarray], folder: Path, erode_px: int) -> None:
+    """COLMAP reads the mask of image `name` from `folder/name.png`; zero pixels get no features."""
+    kernel = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8) if erode_px > 0 else None
+    for name, mask in masks.items():
+        m = mask.astype(np.uint8) * 255  # [H, W]
+        if kernel is not None:
+            m = cv2.erode(m, kernel)
+        out = folder / f"{name}.png"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(out), m)
+
+
+def extract_and_match(
+    database: Path,
+    image_dir: Path,
+    names: list[str],
+    mask_dir: Path | None,
+    intrinsics: Intrinsics | None,
+    settings: SfmSettings,
+) -> None:
+    """Masked SIFT into a fresh database, then exhaustive matching (sequential cannot close the loop)."""
+    reader = pycolmap.ImageReaderOptions()
+    if mask_dir is not None:
+        reader.mask_path = str(mask_dir)
+    if intrinsics is not None:
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = f"{intrinsics.fx},{intrinsics.fy},{intrinsics.cx},{intrinsics.cy}"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = settings.num_threads
+    extraction.sift.max_num_features = settings.max_features
+    pycolmap.extract_features(
+        database,
+        image_dir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = settings.num_threads
+    pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+
+
+def _rigid_from_c2w(c2w: np.ndarray) -> pycolmap.Rigid3d:
+    w2c = np.linalg.inv(c2w)
+    return pycolmap.Rigid3d(w2c[:3, :4])
+
+
+def c2w_of(image: pycolmap.Image) -> np.ndarray:
+    """OpenCV camera-to-world 4x4 of a registered COLMAP image."""
+    w2c = np.eye(4)
+    w2c[:3, :4] = image.cam_from_world().matrix()
+    return np.linalg.inv(w2c)
+
+
+def reconstruction_from_poses(database: Path, c2w_by_name: dict[str, np.ndarray]) -> pycolmap.Reconstruction:
+    """A COLMAP reconstruction whose cameras sit exactly at the given poses, no points yet."""
+    db = pycolmap.Database.open(database)
+    try:
+        cameras = db.read_all_cameras()
+        rigs = db.read_all_rigs()
+        frames = db.read_all_frames()
+        images = db.read_all_images()
+    finally:
+        db.close()
+    rec = pycolmap.Reconstruction()
+    for camera in cameras:
+        rec.add_camera(camera)
+    for rig in rigs:
+        rec.add_rig(rig)
+    image_by_id = {image.image_id: image for image in images}
+    for frame in frames:
+        (data_id,) = frame.data_ids
+        image = image_by_id[data_id.id]
+        if image.name not in c2w_by_name:
+            raise BadInputError(f"{database}: image {image.name!r} has no rig pose")
+        frame.rig_from_world = _rigid_from_c2w(c2w_by_name[image.name])
+        rec.add_frame(frame)
+        rec.add_image(image)
+        rec.register_frame(frame.frame_id)
+    return rec
+
+
+def triangulate_fixed(
+    rec: pycolmap.Reconstruction, database: Path, image_dir: Path, out_dir: Path, settings: SfmSettings
+) -> pycolmap.Reconstruction:
+    """Triangulate tracks with every camera held where the rig put it (no pose refinement)."""
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = settings.num_threads
+    options.ba_refine_focal_length = False
+    options.ba_refine_principal_point = False
+    options.ba_refine_extra_params = False
+    options.triangulation.min_angle = settings.min_track_angle_deg
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return pycolmap.triangulate_points(rec, database, image_dir, out_dir, clear_points=True, options=options)
+
+
+def write_position_priors(database: Path, centre_by_name: dict[str, np.ndarray]) -> None:
+    """Store each camera centre as a pose prior so the mapper can be pulled towards the rig."""
+    db = pycolmap.Database.open(database)
+    try:
+        images = {image.name: image for image in db.read_all_images()}
+        for name, centre in centre_by_name.items():
+            prior = pycolmap.PosePrior()
+            prior.corr_data_id = images[name].data_id
+            prior.position = np.asarray(centre, dtype=np.float64).reshape(3, 1)
+            prior.position_covariance = np.eye(3) * 1e-4
+            prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+            db.write_pose_prior(prior)
+    finally:
+        db.close()
+
+
+def map_incremental(
+    database: Path,
+    image_dir: Path,
+    out_dir: Path,
+    settings: SfmSettings,
+    use_priors: bool,
+    fix_intrinsics: bool,
+) -> pycolmap.Reconstruction | None:
+    """Free incremental mapping (bounded in time); returns the largest model, or None."""
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = settings.num_threads
+    options.max_runtime_seconds = int(settings.max_runtime_s)
+    options.random_seed = 0
+    options.use_prior_position = use_priors
+    if fix_intrinsics:
+        options.ba_refine_focal_length = False
+        options.ba_refine_extra_params = False
+    out_dir.mkdir(parents=True, exist_ok=True)
+    models = pycolmap.incremental_mapping(database, image_dir, out_dir, options=options)
+    if not models:
+        return None
+    return max(models.values(), key=lambda rec: rec.num_reg_images())
+
+
+def registered_poses(rec: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
+    return {image.name: c2w_of(image) for image in rec.images.values() if image.has_pose}
+
+
+def points_and_colours(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse points [N, 3] (float64) and their colours [N, 3] (uint8)."""
+    if rec.num_points3D() == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    pts = rec.points3D.values()
+    xyz = np.array([p.xyz for p in pts])
+    rgb = np.array([p.color for p in pts], dtype=np.uint8)
+    return xyz, rgb
