@@ -43,6 +43,12 @@ class SfmSettings:
     num_threads: int = 2
     max_runtime_s: float = 600.0
     min_track_angle_deg: float = 1.5
+    # Sparse rings (16 views, 20+ deg apart) leave few inliers per pair; COLMAP's defaults (15, 30)
+    # drop such views. Lower floors still need a geometric verification to pass.
+    min_num_matches: int = 15
+    abs_pose_min_num_inliers: int = 30
+    guided_matching: bool = False
+    affine_sift: bool = False
 
 
 def write_colmap_masks(masks: dict[str, np.ndarray], folder: Path, erode_px: int) -> None:
@@ -75,6 +81,8 @@ def extract_and_match(
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = settings.num_threads
     extraction.sift.max_num_features = settings.max_features
+    extraction.sift.estimate_affine_shape = settings.affine_sift
+    extraction.sift.domain_size_pooling = settings.affine_sift
     pycolmap.extract_features(
         database,
         image_dir,
@@ -86,6 +94,7 @@ def extract_and_match(
     )
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = settings.num_threads
+    matching.guided_matching = settings.guided_matching
     pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
 
 
@@ -173,6 +182,8 @@ def map_incremental(
     options.max_runtime_seconds = int(settings.max_runtime_s)
     options.random_seed = 0
     options.use_prior_position = use_priors
+    options.min_num_matches = settings.min_num_matches
+    options.mapper.abs_pose_min_num_inliers = settings.abs_pose_min_num_inliers
     if fix_intrinsics:
         options.ba_refine_focal_length = False
         options.ba_refine_extra_params = False

@@ -1,0 +1,418 @@
+"""A GRBL 1.1h / grblHAL firmware emulator: bytes in, bytes out, motion in (scaled) real time.
+
+Reproduces what docs/rig.md records of real firmware: banner on reset, one `ok`/`error:N` per line,
+realtime bytes, key-based status reports, `$I $$ $G $# $H $X $J=`, G90/G91/G0/G1/G4/G92 with F,
+ALARM:3 on reset during motion, critical ALARM:2 soft-limit and ALARM:1 hard-limit states that ignore
+everything until 0x18, and boot into Alarm when homing is enabled. The clock is evaluated lazily:
+every `write`/`read`/`position` call first advances the machine to `clock()`, so no thread is needed
+here; the links in `sim.grbl_links` pump it.
+
+Two positions are kept apart: the firmware's step counter (MPos) and the physical stage (what a
+camera sees). They differ only after a power cycle, which zeroes the counter where the stage stands.
+"""
+
+from __future__ import annotations
+
+import random
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+from sim.grbl_gcode import GcodeError, parse_block
+from sim.grbl_motion import PlannerBlock, Segment, decel_segment, move_segment, timed_segment
+from sim.grbl_system import run_system_command
+
+AXES = 3  # X turntable (degrees), Y tilt arm (degrees), Z unused
+DEFAULT_SETTINGS: dict[int, float] = {
+    0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
+    20: 0, 21: 0, 22: 0, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
+    100: 44.444, 101: 44.444, 102: 250.0, 110: 3600.0, 111: 1800.0, 112: 500.0,
+    120: 180.0, 121: 90.0, 122: 10.0, 130: 36000.0, 131: 100.0, 132: 200.0,
+}
+BANNERS = {"grbl": "Grbl 1.1h ['$' for help]", "grblhal": "GrblHAL 1.1f ['$' or '$HELP' for help]"}
+_UNLOCK_MSG = "[MSG:'$H'|'$X' to unlock]"
+
+
+@dataclass
+class Faults:
+    """Fault injection knobs; move counts are from now (1 = the next move), each fires once."""
+
+    garble_status: int = 0  # the next N status reports come out truncated or corrupted
+    drop_ok: int = 0  # the next N `ok` replies are never sent
+    reset_on_move: int | None = None  # the board power-cycles halfway through that move
+    alarm_on_move: int | None = None  # a hard limit (ALARM:1) trips halfway through that move
+    vanish_on_move: int | None = None  # the USB link drops halfway through that move
+    replug_after_s: float | None = 0.2  # wall seconds until a vanished link returns (None: never)
+
+
+class GrblFirmware:
+    """One emulated controller board; thread-safe (the camera asks `position()` from its own thread)."""
+
+    def __init__(self, *, flavour: Literal["grbl", "grblhal"] = "grbl", homing: bool = False,
+                 soft_limits: bool = False, time_scale: float = 1.0, settings: dict[int, float] | None = None,
+                 clock: Callable[[], float] = time.monotonic, seed: int = 0) -> None:
+        if flavour not in BANNERS:
+            raise ValueError(f"unknown firmware flavour {flavour!r}; expected one of {sorted(BANNERS)}")
+        self.flavour = flavour
+        self.time_scale = time_scale
+        self.settings = dict(DEFAULT_SETTINGS) | (settings or {})
+        self.settings[22] = 1 if homing else self.settings[22]
+        self.settings[20] = 1 if soft_limits else self.settings[20]
+        self.faults = Faults()
+        self.generation = 0  # bumps each time the link drops, so open handles know they are dead
+        self.plugged = True
+        self._clock = clock
+        self._rng = random.Random(seed)
+        self._lock = threading.RLock()
+        self._out = bytearray()
+        self._mpos = [0.0] * AXES
+        self._phys_offset = [0.0] * AXES
+        self._replug_at: float | None = None
+        self._event: tuple[float, str] | None = None
+        self._boot(self._clock(), power_on=True)
+
+    # ---- the wire -------------------------------------------------------------------------
+    def write(self, data: bytes) -> None:
+        """Bytes from the host. Realtime bytes act at once; others build lines."""
+        with self._lock:
+            now = self._clock()
+            self._advance(now)
+            if not self.plugged:
+                return
+            for byte in data:
+                if byte == 0x18:
+                    self._soft_reset(now)
+                elif self._critical:
+                    continue  # rig.md: everything is ignored until 0x18
+                elif byte == ord("?"):
+                    self._out += self._status_line(now).encode() + b"\r\n"
+                elif byte == ord("!"):
+                    self._hold(now, "Hold")
+                elif byte == 0x84:
+                    self._hold(now, "Door")
+                elif byte == ord("~"):
+                    self._cycle_start(now)
+                elif byte == 0x85:
+                    self._jog_cancel(now)
+                elif byte >= 0x80:
+                    continue
+                elif byte in (0x0A, 0x0D):
+                    self._lines.append(self._rx.decode("ascii", errors="replace") if len(self._rx) < 80 else None)
+                    self._rx.clear()
+                else:
+                    self._rx.append(byte)
+            self._process_lines(now)
+
+    def read(self) -> bytes:
+        """Everything the board has sent since the last call (empty while unplugged)."""
+        with self._lock:
+            self._advance(self._clock())
+            out, self._out = bytes(self._out), bytearray()
+            return out if self.plugged else b""
+
+    def position(self) -> tuple[float, float]:
+        """Where the stage physically is now: (turntable X, tilt Y) in degrees."""
+        with self._lock:
+            now = self._clock()
+            self._advance(now)
+            pos = self._machine(now)
+            return (pos[0] + self._phys_offset[0], pos[1] + self._phys_offset[1])
+
+    @property
+    def state(self) -> str:
+        with self._lock:
+            self._advance(self._clock())
+            return self._state
+
+    def power_cycle(self) -> None:
+        """The board resets itself (brown-out, watchdog): the step counter restarts at zero."""
+        with self._lock:
+            now = self._clock()
+            self._advance(now)
+            self._halt(now)
+            self._boot(now, power_on=True)
+
+    def unplug(self, replug_after_s: float | None) -> None:
+        """The USB link drops now; the board is unpowered until replugged (None: stays away)."""
+        with self._lock:
+            now = self._clock()
+            self._advance(now)
+            self._unplug(now, replug_after_s)
+
+    # ---- clock ----------------------------------------------------------------------------
+    def _tau(self, seg: Segment, now: float) -> float:
+        return (now - seg.t0) / self.time_scale
+
+    def _machine(self, now: float) -> list[float]:
+        return list(self._seg.position(self._tau(self._seg, now))) if self._seg else list(self._mpos)
+
+    def _advance(self, now: float) -> None:
+        while True:
+            if not self.plugged:
+                if self._replug_at is None or now < self._replug_at:
+                    return
+                self.plugged, t = True, self._replug_at
+                self._replug_at = None
+                self._boot(t, power_on=True)
+                continue
+            seg = self._seg
+            if seg is None:
+                return
+            t_end = seg.t0 + seg.duration * self.time_scale
+            if self._event is not None and self._event[0] <= min(t_end, now):
+                self._fire(*self._event)
+                continue
+            if t_end > now:
+                return
+            self._finish(seg, t_end)
+
+    def _fire(self, t: float, kind: str) -> None:
+        self._event = None
+        self._halt(t)
+        if kind == "reset":
+            self._boot(t, power_on=True)
+        elif kind == "alarm":
+            self._state, self._critical = "Alarm", True
+            self._out += b"ALARM:1\r\n[MSG:Reset to continue]\r\n"
+        else:
+            self._unplug(t, self.faults.replug_after_s)
+
+    def _unplug(self, now: float, replug_after_s: float | None) -> None:
+        self._halt(now)
+        self.plugged = False
+        self.generation += 1
+        self._out.clear()
+        self._replug_at = None if replug_after_s is None else now + replug_after_s
+
+    # ---- machine state ----------------------------------------------------------------------
+    def _boot(self, now: float, *, power_on: bool) -> None:
+        """Reset or power-on: modal state, queue and work offset cleared; power-on also zeroes MPos."""
+        if power_on:
+            self._phys_offset = [p + m for p, m in zip(self._phys_offset, self._mpos)]
+            self._mpos = [0.0] * AXES
+            self._state = "Alarm" if self.settings[22] else "Idle"
+        self._seg: Segment | None = None
+        self._queue: deque[PlannerBlock] = deque()
+        self._lines: deque[str | None] = deque()
+        self._rx = bytearray()
+        self._blocked = False  # a G4 or $H is running: later lines wait
+        self._critical = False
+        self._sub = 0  # Hold:N / Door:N
+        self._cancel_jog = False
+        self._g92 = [0.0] * AXES
+        self._planned = list(self._mpos)
+        self._absolute, self._motion, self._feed = True, 0, None
+        self._reports, self._wco_dirty = 0, True
+        self._event = None
+        self._out += f"\r\n{BANNERS[self.flavour]}\r\n".encode()
+        if power_on and self._state == "Alarm":
+            self._out += f"{_UNLOCK_MSG}\r\n".encode()
+
+    def _soft_reset(self, now: float) -> None:
+        moving = self._seg is not None and self._seg.kind != "dwell"
+        homing = moving and self._seg.kind == "home"
+        was_alarm = self._state == "Alarm"
+        self._halt(now)
+        if moving:
+            self._out += b"ALARM:6\r\n" if homing else b"ALARM:3\r\n"
+        self._boot(now, power_on=False)
+        self._state = "Alarm" if moving or was_alarm else "Idle"
+        if self._state == "Alarm":
+            self._out += f"{_UNLOCK_MSG}\r\n".encode()
+
+    def _halt(self, now: float) -> None:
+        """Stop dead (reset, alarm, power loss): the counter keeps whatever was stepped."""
+        self._mpos = self._machine(now)
+        self._seg = None
+        self._queue.clear()
+        self._planned = list(self._mpos)
+        self._blocked = False
+        self._lines.clear()
+
+    def _start_next(self, t: float) -> None:
+        while self._queue:
+            block = self._queue[0]
+            if block.kind == "dwell":
+                self._seg = timed_segment("dwell", t, tuple(self._mpos), tuple(self._mpos), block.seconds)
+                return
+            if block.kind == "home":
+                seconds = max(abs(m) for m in self._mpos) / (self.settings[25] / 60.0) + 0.5
+                self._seg = timed_segment("home", t, tuple(self._mpos), block.target, seconds)
+                self._state = "Home"
+                return
+            rates = tuple(self.settings[110 + i] for i in range(AXES))
+            accels = tuple(self.settings[120 + i] for i in range(AXES))
+            seg = move_segment(t, tuple(self._mpos), block.target, rates, accels, block.feed)
+            if seg.length == 0.0:
+                self._queue.popleft()
+                continue
+            self._seg = seg
+            self._state = "Jog" if block.kind == "jog" else "Run"
+            self._arm_faults(seg)
+            return
+        self._seg = None
+        if self._state in ("Run", "Jog", "Home"):
+            self._state = "Idle"
+
+    def _arm_faults(self, seg: Segment) -> None:
+        midpoint = seg.t0 + 0.5 * seg.duration * self.time_scale
+        for knob, kind in (("reset_on_move", "reset"), ("alarm_on_move", "alarm"), ("vanish_on_move", "vanish")):
+            left = getattr(self.faults, knob)
+            if left is not None:
+                setattr(self.faults, knob, None if left <= 1 else left - 1)
+                if left <= 1:
+                    self._event = (midpoint, kind)
+
+    def _finish(self, seg: Segment, t: float) -> None:
+        self._mpos = list(seg.end())
+        self._seg = None
+        if seg.kind == "decel":
+            self._sub = 0
+            if self._cancel_jog:
+                self._cancel_jog = False
+                self._queue.clear()
+                self._planned = list(self._mpos)
+                self._state = "Idle"
+            return
+        block = self._queue.popleft()
+        if block.kind == "home":
+            self._phys_offset = [round(p / 360.0) * 360.0 if i == 0 else 0.0 for i, p in enumerate(
+                m + o for m, o in zip(self._mpos, self._phys_offset))]
+            self._mpos = [0.0] * AXES
+            self._planned = [0.0] * AXES
+        if block.kind in ("home", "dwell"):
+            self._blocked = False
+            self._reply_ok()
+        self._start_next(t)
+        self._process_lines(t)
+
+    def _hold(self, now: float, state: str) -> None:
+        seg = self._seg
+        if self._state in ("Run", "Jog") and seg is not None and seg.kind == "move":
+            tau = self._tau(seg, now)
+            self._seg = decel_segment(now, seg.position(tau), seg.direction, seg.velocity(tau), seg.accel)
+            self._state, self._sub = state, 1
+        elif self._state == "Idle" and seg is None:
+            self._state, self._sub = state, 0
+
+    def _cycle_start(self, now: float) -> None:
+        if self._state in ("Hold", "Door") and self._sub == 0:  # ~ during Hold:1 is ignored
+            self._state = "Idle"
+            self._start_next(now)
+
+    def _jog_cancel(self, now: float) -> None:
+        if self._state == "Jog":
+            self._hold(now, "Jog")
+            self._cancel_jog = True
+
+    # ---- lines ------------------------------------------------------------------------------
+    def _reply_ok(self) -> None:
+        if self.faults.drop_ok > 0:
+            self.faults.drop_ok -= 1
+        else:
+            self._out += b"ok\r\n"
+
+    def _reply(self, lines: list[str]) -> None:
+        self._out += "".join(f"{line}\r\n" for line in lines).encode()
+        self._reply_ok()
+
+    def _error(self, code: int) -> None:
+        self._out += f"error:{code}\r\n".encode()
+
+    def _process_lines(self, now: float) -> None:
+        while self._lines and not self._blocked and not self._critical:
+            line = self._lines.popleft()
+            if line is None:
+                self._error(11)
+                continue
+            text = "".join(line.split()).upper() if not line.startswith("$") else line.strip()
+            if text == "":
+                self._reply_ok()
+            elif text.startswith("$"):
+                self._system(text[1:], now)
+            elif self._state in ("Alarm", "Jog"):
+                self._error(9)
+            else:
+                self._gcode(text, now)
+
+    def _busy(self) -> bool:
+        return self._seg is not None or self._state in ("Run", "Hold", "Jog", "Home", "Door")
+
+    def _system(self, cmd: str, now: float) -> None:
+        run_system_command(self, "".join(cmd.split()).upper(), now)
+
+    def _gcode(self, text: str, now: float) -> None:
+        try:
+            block = parse_block(text, self._absolute, self._motion, self._feed)
+        except GcodeError as exc:
+            self._error(exc.code)
+            return
+        wco = self._g92
+        if block.dwell is not None:
+            self._queue.append(PlannerBlock("dwell", tuple(self._planned), seconds=block.dwell))
+            self._blocked = True
+        if block.g92 is not None:
+            self._g92 = [p - v if v is not None else g for p, v, g in zip(self._planned, block.g92, self._g92)]
+            self._wco_dirty = True
+        if block.g92_clear:
+            self._g92, self._wco_dirty = [0.0] * AXES, True
+        self._absolute, self._motion, self._feed = block.absolute, block.motion, block.feed
+        if block.axes is not None:
+            target = tuple((v + o if block.absolute else p + v) if v is not None else p
+                           for v, p, o in zip(block.axes, self._planned, wco))
+            if not self._within_travel(target):
+                self._halt(now)
+                self._state, self._critical = "Alarm", True
+                self._out += b"ALARM:2\r\n[MSG:Reset to continue]\r\n"
+                return
+            self.enqueue(PlannerBlock("move", target, block.feed if block.motion == 1 else None), now)
+        if not self._blocked:
+            self._reply_ok()
+        elif self._seg is None:
+            self._start_next(now)
+
+    def _within_travel(self, target: tuple[float, ...]) -> bool:
+        if not self.settings[20]:
+            return True
+        return all(-1e-6 <= t <= self.settings[130 + i] + 1e-6 for i, t in enumerate(target))
+
+    def enqueue(self, block: PlannerBlock, now: float) -> None:
+        """Plan a block; it starts at once when the machine is idle."""
+        self._queue.append(block)
+        self._planned = list(block.target)
+        if self._seg is None and self._state not in ("Hold", "Door"):
+            self._start_next(now)
+
+    # ---- reports ----------------------------------------------------------------------------
+    def _status_line(self, now: float) -> str:
+        pos = self._machine(now)
+        steps = [self.settings[100 + i] for i in range(AXES)]
+        mpos = ",".join(f"{round(p * s) / s:.3f}" for p, s in zip(pos, steps))
+        speed = self._seg.velocity(self._tau(self._seg, now)) * 60.0 if self._seg else 0.0
+        state = f"{self._state}:{self._sub}" if self._state in ("Hold", "Door") else self._state
+        fields = [state, f"MPos:{mpos}"]
+        if self.flavour == "grblhal":
+            fields.append(f"Bf:{35 - len(self._queue)},1023")
+        fields.append(f"FS:{speed:.0f},0")
+        if self._reports % 10 == 0 or self._wco_dirty:
+            fields.append("WCO:" + ",".join(f"{g:.3f}" for g in self._g92))
+            self._wco_dirty = False
+        elif self._reports % 10 == 5:
+            fields.append("Ov:100,100,100")
+        self._reports += 1
+        line = "<" + "|".join(fields) + ">"
+        if self.faults.garble_status > 0:
+            self.faults.garble_status -= 1
+            line = self._garble(line)
+        return line
+
+    def _garble(self, line: str) -> str:
+        """Line noise: a report cut short, or a digit hit by a flipped bit."""
+        if self._rng.random() < 0.5:
+            return line[: self._rng.randrange(1, len(line) - 1)]
+        digits = [i for i, c in enumerate(line) if c.isdigit()]
+        i = self._rng.choice(digits)
+        return line[:i] + chr(ord(line[i]) ^ 0x40) + line[i + 1:]

@@ -1,0 +1,108 @@
+"""sim_truth/: what a simulated scan really was, for tests and benchmarks to score the pipeline against.
+
+Layout (contract.md): mesh.ply (the true stone, turntable frame, metres), cameras.json (per frame:
+file, 4x4 camera-to-world in OpenCV convention, K, width, height) and masks/<stem>.png (8-bit, 255 =
+stone). Frames are added one at a time by `write_truth_frame` so a scan that resumes after a crash
+adds its new frames without rewriting the ones it already has; every write is atomic.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from PIL import Image
+
+from sim.scene import World, render
+from station.errors import ScanFolderError
+from station.rig_geometry import camera_to_turntable
+from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
+
+Frame = tuple[str, float, float]  # (file relative to the scan root, elevation_deg, azimuth_deg)
+
+
+def _truth_paths(scan_root: Path) -> tuple[Path, Path, Path]:
+    truth = ScanFolder(scan_root).sim_truth_dir
+    return truth / "mesh.ply", truth / "cameras.json", truth / "masks"
+
+
+def mask_path_for(scan_root: Path, file: str) -> Path:
+    """Where the true mask of frame `file` lives: sim_truth/masks/<stem>.png."""
+    return _truth_paths(scan_root)[2] / f"{Path(file).stem}.png"
+
+
+def _camera_record(world: World, file: str, elevation_deg: float, azimuth_deg: float) -> dict:
+    rig = world.rig
+    return {
+        "file": file,
+        "elevation_deg": float(elevation_deg),
+        "azimuth_deg": float(azimuth_deg),
+        "camera_to_world": camera_to_turntable(elevation_deg, azimuth_deg, rig).tolist(),
+        "K": rig.intrinsics().tolist(),
+        "width": rig.width,
+        "height": rig.height,
+    }
+
+
+def _read_cameras(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    try:
+        frames = json.loads(path.read_text(encoding="utf-8"))["frames"]
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ScanFolderError(f"{path}: not a sim_truth cameras file ({exc})") from exc
+    if not isinstance(frames, list):
+        raise ScanFolderError(f"{path}: 'frames' is not a list")
+    return frames
+
+
+def write_truth_mesh(scan_root: Path, world: World) -> None:
+    """The true stone as PLY, in the turntable frame, metres."""
+    mesh_path = _truth_paths(scan_root)[0]
+    atomic_write_with(mesh_path, lambda tmp: world.stone.mesh.export(tmp, file_type="ply"))
+
+
+def write_truth_frame(
+    scan_root: Path,
+    world: World,
+    file: str,
+    elevation_deg: float,
+    azimuth_deg: float,
+    mask: np.ndarray | None = None,
+) -> None:
+    """Add or replace one frame's camera and true mask; writes mesh.ply first if it is missing.
+
+    `mask` [H, W] bool is the mask from the render that made the frame (saves a render); without it
+    the stone is rendered at this pose. Plates get an empty mask, as the stone was not there.
+    """
+    scan_root = Path(scan_root)
+    ScanFolder(scan_root).resolve_inside(file)
+    mesh_path, cameras_path, _ = _truth_paths(scan_root)
+    if not mesh_path.exists():
+        write_truth_mesh(scan_root, world)
+    if mask is None:
+        mask = render(world, elevation_deg, azimuth_deg, supersample=2).mask
+    if mask.shape != (world.rig.height, world.rig.width):
+        raise ScanFolderError(f"{file}: mask is {mask.shape}, the rig makes {world.rig.height}x{world.rig.width}")
+    png = Image.fromarray(np.where(mask, 255, 0).astype(np.uint8))
+    atomic_write_with(mask_path_for(scan_root, file), lambda tmp: png.save(tmp, format="PNG"))
+    frames = [f for f in _read_cameras(cameras_path) if f.get("file") != file]
+    frames.append(_camera_record(world, file, elevation_deg, azimuth_deg))
+    atomic_write_json(cameras_path, {"frames": sorted(frames, key=lambda f: str(f["file"]))})
+
+
+def write_sim_truth(scan_root: Path, world: World, frames: Sequence[Frame]) -> None:
+    """Write the whole sim_truth/ for `frames` at once (masks rendered with the stone in place)."""
+    scan_root = Path(scan_root)
+    for file, _, _ in frames:
+        ScanFolder(scan_root).resolve_inside(file)
+    mesh_path, cameras_path, _ = _truth_paths(scan_root)
+    write_truth_mesh(scan_root, world)
+    for file, elevation, azimuth in frames:
+        mask = render(world, elevation, azimuth, stone_present=True, supersample=2).mask
+        png = Image.fromarray(np.where(mask, 255, 0).astype(np.uint8))
+        atomic_write_with(mask_path_for(scan_root, file), lambda tmp, png=png: png.save(tmp, format="PNG"))
+    records = [_camera_record(world, file, elev, azim) for file, elev, azim in frames]
+    atomic_write_json(cameras_path, {"frames": sorted(records, key=lambda f: str(f["file"]))})

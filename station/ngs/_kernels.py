@@ -1,0 +1,342 @@
+"""numba kernels of the CPU rasteriser: tile binning, forward compositing, backward, per-pixel listings.
+
+Layout follows gsplat: every (tile, Gaussian) intersection sits in a per-tile, depth-sorted list. Tiles
+run in parallel (prange); inside a tile the loop is over Gaussians outside and the tile's 256 pixels
+inside, branch-free, so LLVM vectorises it. `fast=True` uses a polynomial exp (rel. error ~1e-7, float32)
+because math.exp blocks vectorisation; float64 callers (gradcheck) pass fast=False for math.exp. The
+backward gives every intersection its own gradient slot and reduces them per Gaussian in a fixed order:
+no atomics, deterministic. Keep every kernel and its helpers in this one module (numba's cache key).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+TILE = 16
+TILE_PIX = TILE * TILE
+# float32 constants: a float64 literal would promote float32 arithmetic to float64 (half the SIMD width);
+# with float64 inputs they promote harmlessly.
+F = np.float32
+ZERO, HALF, ONE = F(0.0), F(0.5), F(1.0)
+ALPHA_MAX = F(0.99)
+ALPHA_MIN = F(1.0 / 255.0)
+T_STOP = F(1e-4)
+LOG2E = F(1.4426950408889634)
+LN2 = F(0.6931471805599453)
+SQRT2 = F(1.4142135623730951)
+EXP_FLOOR = F(-30.0)
+POLY = (F(1.0), F(1.0), F(0.5), F(1.0 / 6), F(1.0 / 24), F(1.0 / 120), F(1.0 / 720), F(1.0 / 5040))
+
+
+@njit(cache=True)
+def _tile_rect(u, v, r, tw, th):
+    """gsplat's isect rule: tiles [x0, x1) x [y0, y1) touched by a Gaussian of radius r at (u, v)."""
+    x0 = min(max(int(math.floor((u - r) / TILE)), 0), tw)
+    x1 = min(max(int(math.ceil((u + r) / TILE)), 0), tw)
+    y0 = min(max(int(math.floor((v - r) / TILE)), 0), th)
+    y1 = min(max(int(math.ceil((v + r) / TILE)), 0), th)
+    return x0, y0, x1, y1
+
+
+@njit(parallel=True, cache=True)
+def bin_gaussians(means2d, radii, depths, width, height):
+    """Per-tile depth-sorted intersection lists -> tile_offsets [T+1], isect_gid [M], gauss_offsets [N+1],
+    gauss_slots [M] (for Gaussian g, the list positions of its intersections, tile-major order)."""
+    n = means2d.shape[0]
+    tw = (width + TILE - 1) // TILE
+    th = (height + TILE - 1) // TILE
+    counts = np.zeros(n, np.int64)
+    for g in prange(n):
+        if radii[g] > 0:
+            x0, y0, x1, y1 = _tile_rect(means2d[g, 0], means2d[g, 1], float(radii[g]), tw, th)
+            counts[g] = (x1 - x0) * (y1 - y0)
+    gauss_offsets = np.zeros(n + 1, np.int64)
+    gauss_offsets[1:] = np.cumsum(counts)
+    m = gauss_offsets[n]
+    order = np.argsort(depths, kind="mergesort")
+    tile_counts = np.zeros(tw * th + 1, np.int64)
+    for i in range(n):
+        g = order[i]
+        if counts[g] > 0:
+            x0, y0, x1, y1 = _tile_rect(means2d[g, 0], means2d[g, 1], float(radii[g]), tw, th)
+            for ty in range(y0, y1):
+                for tx in range(x0, x1):
+                    tile_counts[ty * tw + tx + 1] += 1
+    tile_offsets = np.cumsum(tile_counts)
+    cursor = tile_offsets[:-1].copy()
+    isect_gid = np.empty(m, np.int32)
+    gauss_slots = np.empty(m, np.int64)
+    for i in range(n):
+        g = order[i]
+        if counts[g] > 0:
+            x0, y0, x1, y1 = _tile_rect(means2d[g, 0], means2d[g, 1], float(radii[g]), tw, th)
+            j = gauss_offsets[g]
+            for ty in range(y0, y1):
+                for tx in range(x0, x1):
+                    t = ty * tw + tx
+                    isect_gid[cursor[t]] = g
+                    gauss_slots[j] = cursor[t]
+                    cursor[t] += 1
+                    j += 1
+    return tile_offsets, isect_gid, gauss_offsets, gauss_slots
+
+
+@njit(fastmath=True, cache=True)
+def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf):
+    """Alpha and exp(-sigma) of one Gaussian over a tile's pixels; sigma < 0 gives alpha 0."""
+    npix = px.shape[0]
+    if fast:
+        fbuf = ibuf.view(np.float32)
+        for p in range(npix):
+            dx = mx - px[p]
+            dy = my - py[p]
+            sig = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+            y = max(min(-sig, ZERO), EXP_FLOOR) * LOG2E
+            kf = np.floor(y)
+            f = (y - kf - HALF) * LN2
+            poly = POLY[0] + f * (POLY[1] + f * (POLY[2] + f * (POLY[3] + f * (POLY[4] + f * (POLY[5] + f * (
+                POLY[6] + f * POLY[7]))))))
+            ibuf[p] = (np.int32(kf) + np.int32(127)) << np.int32(23)
+            expo[p] = poly * SQRT2 if sig >= ZERO else ZERO
+        for p in range(npix):
+            expo[p] *= fbuf[p]
+            alpha[p] = min(ALPHA_MAX, op * expo[p])
+    else:
+        for p in range(npix):
+            dx = mx - px[p]
+            dy = my - py[p]
+            sig = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+            expo[p] = math.exp(-sig) if sig >= ZERO else ZERO
+            alpha[p] = min(ALPHA_MAX, op * expo[p])
+
+
+@njit(cache=True)
+def _tile_pixels(t, tw, width, height, dtype):
+    """Pixel centres of tile t and whether each lies inside the image."""
+    px = np.empty(TILE_PIX, dtype)
+    py = np.empty(TILE_PIX, dtype)
+    inside = np.empty(TILE_PIX, np.bool_)
+    x0 = (t % tw) * TILE
+    y0 = (t // tw) * TILE
+    for p in range(TILE_PIX):
+        x = x0 + p % TILE
+        y = y0 + p // TILE
+        px[p] = x + 0.5
+        py[p] = y + 0.5
+        inside[p] = x < width and y < height
+    return px, py, inside
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, width, height, fast):
+    """Composite front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W] int32
+    (position in the tile list where the pixel stopped; the list length if it never did)."""
+    dt = means2d.dtype
+    d_ch = colors.shape[1]
+    tw = (width + TILE - 1) // TILE
+    ntiles = tile_offsets.shape[0] - 1
+    feats = np.zeros((height, width, d_ch), dt)
+    t_final = np.ones((height, width), dt)
+    n_proc = np.zeros((height, width), np.int32)
+    for t in prange(ntiles):
+        start, end = tile_offsets[t], tile_offsets[t + 1]
+        px, py, inside = _tile_pixels(t, tw, width, height, dt)
+        T = np.ones(TILE_PIX, dt)
+        live = np.empty(TILE_PIX, dt)
+        stop_at = np.full(TILE_PIX, end - start, np.int32)
+        acc = np.zeros((d_ch, TILE_PIX), dt)
+        alpha = np.empty(TILE_PIX, dt)
+        expo = np.empty(TILE_PIX, dt)
+        w = np.empty(TILE_PIX, dt)
+        ibuf = np.empty(TILE_PIX, np.int32)
+        n_live = 0
+        for p in range(TILE_PIX):
+            live[p] = 1.0 if inside[p] else 0.0
+            n_live += inside[p]
+        for k in range(end - start):
+            g = isect_gid[start + k]
+            _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
+                    px, py, alpha, expo, fast, ibuf)
+            for p in range(TILE_PIX):
+                a = alpha[p]
+                valid = (a >= ALPHA_MIN) & (live[p] > ZERO)
+                next_t = T[p] * (ONE - a)
+                stop = valid & (next_t <= T_STOP)
+                take = valid & (next_t > T_STOP)
+                w[p] = a * T[p] if take else ZERO
+                T[p] = next_t if take else T[p]
+                live[p] = ZERO if stop else live[p]
+                stop_at[p] = k if stop else stop_at[p]
+            for d in range(d_ch):
+                c = colors[g, d]
+                for p in range(TILE_PIX):
+                    acc[d, p] += c * w[p]
+            if k % 8 == 7:
+                s = 0.0
+                for p in range(TILE_PIX):
+                    s += live[p]
+                if s == 0.0:
+                    break
+        for p in range(TILE_PIX):
+            if inside[p]:
+                x = int(px[p])
+                y = int(py[p])
+                t_final[y, x] = T[p]
+                n_proc[y, x] = stop_at[p]
+                for d in range(d_ch):
+                    feats[y, x, d] = acc[d, p]
+    return feats, t_final, n_proc
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, isect_gid, width, height,
+                  feats, t_final, n_proc, g_feats, g_alpha, fast):
+    """Per-intersection gradients (list order) -> g_means2d [M,2], g_conics [M,3], g_colors [M,D], g_opac [M]."""
+    dt = means2d.dtype
+    d_ch = colors.shape[1]
+    tw = (width + TILE - 1) // TILE
+    ntiles = tile_offsets.shape[0] - 1
+    m = isect_gid.shape[0]
+    gm = np.zeros((m, 2), dt)
+    gc = np.zeros((m, 3), dt)
+    gcol = np.zeros((m, d_ch), dt)
+    gop = np.zeros(m, dt)
+    for t in prange(ntiles):
+        start, end = tile_offsets[t], tile_offsets[t + 1]
+        if end == start:
+            continue
+        px, py, inside = _tile_pixels(t, tw, width, height, dt)
+        T = np.ones(TILE_PIX, dt)
+        tn = np.zeros(TILE_PIX, dt)
+        limit = np.zeros(TILE_PIX, np.int32)
+        ga = np.zeros(TILE_PIX, dt)
+        go = np.zeros((d_ch, TILE_PIX), dt)
+        rest = np.zeros((d_ch, TILE_PIX), dt)
+        alpha = np.empty(TILE_PIX, dt)
+        expo = np.empty(TILE_PIX, dt)
+        w = np.empty(TILE_PIX, dt)
+        tb = np.empty(TILE_PIX, dt)
+        gda = np.empty(TILE_PIX, dt)
+        inv1a = np.empty(TILE_PIX, dt)
+        ibuf = np.empty(TILE_PIX, np.int32)
+        kmax = 0
+        for p in range(TILE_PIX):
+            if inside[p]:
+                x = int(px[p])
+                y = int(py[p])
+                tn[p] = t_final[y, x]
+                limit[p] = n_proc[y, x]
+                kmax = max(kmax, n_proc[y, x])
+                ga[p] = g_alpha[y, x]
+                for d in range(d_ch):
+                    go[d, p] = g_feats[y, x, d]
+                    rest[d, p] = feats[y, x, d] + t_final[y, x] * background[d]
+        for k in range(kmax):
+            s = start + k
+            g = isect_gid[s]
+            mx, my = means2d[g, 0], means2d[g, 1]
+            ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+            op = opacities[g]
+            _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf)
+            for p in range(TILE_PIX):
+                a = alpha[p]
+                take = (a >= ALPHA_MIN) & (k < limit[p])
+                inv = ONE / (ONE - a)
+                tb[p] = T[p]
+                w[p] = a * T[p] if take else ZERO
+                T[p] = T[p] * (ONE - a) if take else T[p]
+                gda[p] = ga[p] * tn[p] * inv if take else ZERO
+                inv1a[p] = inv if take else ZERO
+            for d in range(d_ch):
+                c = colors[g, d]
+                acc_c = ZERO
+                for p in range(TILE_PIX):
+                    rest[d, p] -= c * w[p]
+                    gda[p] += go[d, p] * ((tb[p] * c if w[p] != ZERO else ZERO) - rest[d, p] * inv1a[p])
+                    acc_c += go[d, p] * w[p]
+                gcol[s, d] = acc_c
+            g_op = ZERO
+            g_mx = ZERO
+            g_my = ZERO
+            g_a = ZERO
+            g_b = ZERO
+            g_c = ZERO
+            for p in range(TILE_PIX):
+                unclamped = op * expo[p] < ALPHA_MAX
+                gd = gda[p] if unclamped else ZERO
+                g_op += gd * expo[p]
+                g_sig = -gd * alpha[p]
+                dx = mx - px[p]
+                dy = my - py[p]
+                g_mx += g_sig * (ca * dx + cb * dy)
+                g_my += g_sig * (cc * dy + cb * dx)
+                g_a += g_sig * HALF * dx * dx
+                g_b += g_sig * dx * dy
+                g_c += g_sig * HALF * dy * dy
+            gop[s] = g_op
+            gm[s, 0] = g_mx
+            gm[s, 1] = g_my
+            gc[s, 0] = g_a
+            gc[s, 1] = g_b
+            gc[s, 2] = g_c
+    return gm, gc, gcol, gop
+
+
+@njit(parallel=True, cache=True)
+def reduce_per_gaussian(slot_grads, gauss_offsets, gauss_slots):
+    """Sum per-intersection gradient rows [M, K] into per-Gaussian rows [N, K], each Gaussian in a fixed order."""
+    n = gauss_offsets.shape[0] - 1
+    kk = slot_grads.shape[1]
+    out = np.zeros((n, kk), slot_grads.dtype)
+    for g in prange(n):
+        for j in range(gauss_offsets[g], gauss_offsets[g + 1]):
+            s = gauss_slots[j]
+            for q in range(kk):
+                out[g, q] += slot_grads[s, q]
+    return out
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, width, height, n_proc, fast,
+                       counts, cursor, ids, fill):
+    """One pass over every pixel's contributors: count them (fill=False) or write their ids (fill=True)."""
+    dt = means2d.dtype
+    tw = (width + TILE - 1) // TILE
+    for t in prange(tile_offsets.shape[0] - 1):
+        start = tile_offsets[t]
+        px, py, inside = _tile_pixels(t, tw, width, height, dt)
+        alpha = np.empty(TILE_PIX, dt)
+        expo = np.empty(TILE_PIX, dt)
+        ibuf = np.empty(TILE_PIX, np.int32)
+        kmax = 0
+        for p in range(TILE_PIX):
+            if inside[p]:
+                kmax = max(kmax, n_proc[int(py[p]), int(px[p])])
+        for k in range(kmax):
+            g = isect_gid[start + k]
+            _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
+                    px, py, alpha, expo, fast, ibuf)
+            for p in range(TILE_PIX):
+                if inside[p] and alpha[p] >= ALPHA_MIN and k < n_proc[int(py[p]), int(px[p])]:
+                    pix = int(py[p]) * width + int(px[p])
+                    if fill:
+                        ids[cursor[pix]] = g
+                        cursor[pix] += 1
+                    else:
+                        counts[pix + 1] += 1
+
+
+def list_contributors(means2d, conics, opacities, tile_offsets, isect_gid, width, height, n_proc, fast):
+    """Per pixel (row-major), the Gaussian ids composited front to back -> offsets [H*W+1], ids [M]."""
+    counts = np.zeros(height * width + 1, np.int64)
+    empty = np.zeros(0, np.int64)
+    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, width, height, n_proc, fast,
+                       counts, empty, empty, False)
+    offsets = np.cumsum(counts)
+    ids = np.empty(offsets[-1], np.int64)
+    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, width, height, n_proc, fast,
+                       counts, offsets[:-1].copy(), ids, True)
+    return offsets, ids

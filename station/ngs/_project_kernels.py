@@ -1,0 +1,338 @@
+"""numba kernels for EWA projection fused with SH colour, forward and hand-derived backward.
+
+As small torch ops these dominated a CPU training step once compositing was fast, so each Gaussian is
+handled in one pass here. Conventions match `raster_reference.project` and `eval_sh` exactly. The
+backward writes per-(camera, Gaussian) pose partials and sums them in a fixed order: deterministic.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+EPS2D = 0.3
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+C20, C21, C22, C23, C24 = 1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396
+C30, C31, C32, C33 = -0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154
+C34, C35, C36 = -0.4570457994644658, 1.445305721320277, -0.5900435899266435
+
+
+@njit(cache=True)
+def _sh_basis(x, y, z, out):
+    """Real SH basis up to degree 3 (gsplat/3DGS signs) at unit direction (x, y, z) into out[16]."""
+    xx, yy, zz = x * x, y * y, z * z
+    out[0] = SH_C0
+    out[1] = -SH_C1 * y
+    out[2] = SH_C1 * z
+    out[3] = -SH_C1 * x
+    out[4] = C20 * x * y
+    out[5] = C21 * y * z
+    out[6] = C22 * (2 * zz - xx - yy)
+    out[7] = C23 * x * z
+    out[8] = C24 * (xx - yy)
+    out[9] = C30 * y * (3 * xx - yy)
+    out[10] = C31 * x * y * z
+    out[11] = C32 * y * (4 * zz - xx - yy)
+    out[12] = C33 * z * (2 * zz - 3 * xx - 3 * yy)
+    out[13] = C34 * x * (4 * zz - xx - yy)
+    out[14] = C35 * z * (xx - yy)
+    out[15] = C36 * x * (xx - 3 * yy)
+
+
+@njit(cache=True)
+def _sh_basis_grad(x, y, z, gx, gy, gz):
+    """d basis_k / d(x, y, z) for k < 16 into gx, gy, gz [16]."""
+    xx, yy, zz = x * x, y * y, z * z
+    for k in range(16):
+        gx[k] = 0.0
+        gy[k] = 0.0
+        gz[k] = 0.0
+    gy[1] = -SH_C1
+    gz[2] = SH_C1
+    gx[3] = -SH_C1
+    gx[4], gy[4] = C20 * y, C20 * x
+    gy[5], gz[5] = C21 * z, C21 * y
+    gx[6], gy[6], gz[6] = -2 * C22 * x, -2 * C22 * y, 4 * C22 * z
+    gx[7], gz[7] = C23 * z, C23 * x
+    gx[8], gy[8] = 2 * C24 * x, -2 * C24 * y
+    gx[9], gy[9] = 6 * C30 * x * y, C30 * (3 * xx - 3 * yy)
+    gx[10], gy[10], gz[10] = C31 * y * z, C31 * x * z, C31 * x * y
+    gx[11], gy[11], gz[11] = -2 * C32 * x * y, C32 * (4 * zz - xx - 3 * yy), 8 * C32 * y * z
+    gx[12], gy[12], gz[12] = -6 * C33 * x * z, -6 * C33 * y * z, C33 * (6 * zz - 3 * xx - 3 * yy)
+    gx[13], gy[13], gz[13] = C34 * (4 * zz - 3 * xx - yy), -2 * C34 * x * y, 8 * C34 * x * z
+    gx[14], gy[14], gz[14] = 2 * C35 * x * z, -2 * C35 * y * z, C35 * (xx - yy)
+    gx[15], gy[15] = C36 * (3 * xx - 3 * yy), -6 * C36 * x * y
+
+
+@njit(cache=True)
+def _quat_rot(q, R):
+    """Unit rotation from an unnormalised wxyz quaternion into R [3, 3]; returns the norm and unit quaternion."""
+    nrm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    w, x, y, z = q[0] / nrm, q[1] / nrm, q[2] / nrm, q[3] / nrm
+    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    return nrm, w, x, y, z
+
+
+@njit(cache=True)
+def _mm(A, B, out):
+    """out = A @ B for tiny matrices (numba's @ calls BLAS and allocates: far too slow per Gaussian)."""
+    for i in range(A.shape[0]):
+        for j in range(B.shape[1]):
+            acc = 0.0
+            for k in range(A.shape[1]):
+                acc += A[i, k] * B[k, j]
+            out[i, j] = acc
+
+
+@njit(cache=True)
+def _camera_cov(q, s, Rw, R, M, cov, covc, tmp):
+    """World covariance R S S R^T and its camera-frame rotation Rw cov Rw^T (into cov, covc [3, 3])."""
+    _quat_rot(q, R)
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = R[i, j] * s[j]
+    for i in range(3):
+        for j in range(3):
+            cov[i, j] = M[i, 0] * M[j, 0] + M[i, 1] * M[j, 1] + M[i, 2] * M[j, 2]
+    _mm(Rw, cov, tmp)
+    for i in range(3):
+        for j in range(3):
+            covc[i, j] = tmp[i, 0] * Rw[j, 0] + tmp[i, 1] * Rw[j, 1] + tmp[i, 2] * Rw[j, 2]
+
+
+@njit(cache=True)
+def _jacobian(x, y, z, fx, fy, cx, cy, width, height):
+    """EWA Jacobian entries (J00, J02, J11, J12) with gsplat's 1.3x frustum clamp, and the clamp flags."""
+    lxp = (width - cx) / fx + 0.3 * (0.5 * width / fx)
+    lxn = cx / fx + 0.3 * (0.5 * width / fx)
+    lyp = (height - cy) / fy + 0.3 * (0.5 * height / fy)
+    lyn = cy / fy + 0.3 * (0.5 * height / fy)
+    rx, ry = x / z, y / z
+    free_x = -lxn <= rx <= lxp
+    free_y = -lyn <= ry <= lyp
+    rx = min(max(rx, -lxn), lxp)
+    ry = min(max(ry, -lyn), lyp)
+    return fx / z, -fx * rx / z, fy / z, -fy * ry / z, free_x, free_y, rx, ry
+
+
+CHUNK = 64
+
+
+@njit(cache=True)
+def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far,
+                 means2d, conics, depths, radii, colors, Rw, sc, basis):
+    """Project Gaussian g into camera c, writing every output slot; sc is [5, 3, 3] scratch."""
+    fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+    x = Rw[0, 0] * means[g, 0] + Rw[0, 1] * means[g, 1] + Rw[0, 2] * means[g, 2] + viewmats[c, 0, 3]
+    y = Rw[1, 0] * means[g, 0] + Rw[1, 1] * means[g, 1] + Rw[1, 2] * means[g, 2] + viewmats[c, 1, 3]
+    z = Rw[2, 0] * means[g, 0] + Rw[2, 1] * means[g, 1] + Rw[2, 2] * means[g, 2] + viewmats[c, 2, 3]
+    depths[c, g] = z
+    if z == 0.0:
+        return
+    means2d[c, g, 0] = fx * x / z + cx
+    means2d[c, g, 1] = fy * y / z + cy
+    covc = sc[3]
+    _camera_cov(quats[g], scales[g], Rw, sc[0], sc[1], sc[2], covc, sc[4])
+    j00, j02, j11, j12, _, _, _, _ = _jacobian(x, y, z, fx, fy, cx, cy, width, height)
+    a = j00 * j00 * covc[0, 0] + 2 * j00 * j02 * covc[0, 2] + j02 * j02 * covc[2, 2] + EPS2D
+    b = j00 * j11 * covc[0, 1] + j00 * j12 * covc[0, 2] + j02 * j11 * covc[2, 1] + j02 * j12 * covc[2, 2]
+    cc = j11 * j11 * covc[1, 1] + 2 * j11 * j12 * covc[1, 2] + j12 * j12 * covc[2, 2] + EPS2D
+    det = a * cc - b * b
+    det_safe = max(det, 1e-10)
+    conics[c, g, 0] = cc / det_safe
+    conics[c, g, 1] = -b / det_safe
+    conics[c, g, 2] = a / det_safe
+    half = 0.5 * (a + cc)
+    v1 = half + math.sqrt(max(half * half - det, 0.01))
+    radius = math.ceil(3.0 * math.sqrt(max(v1, 0.0)))
+    u, v = means2d[c, g, 0], means2d[c, g, 1]
+    visible = det > 0 and near < z < far
+    inside = u + radius > 0 and u - radius < width and v + radius > 0 and v - radius < height
+    radii[c, g] = int(radius) if visible and inside else 0
+    if sh_degree >= 0:
+        dx, dy, dz = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
+        nd = math.sqrt(dx * dx + dy * dy + dz * dz)
+        _sh_basis(dx / nd, dy / nd, dz / nd, basis)
+        for ch in range(3):
+            acc = 0.0
+            for k in range((sh_degree + 1) ** 2):
+                acc += basis[k] * coeffs[g, k, ch]
+            colors[c, g, ch] = max(acc + 0.5, 0.0)
+
+
+@njit(parallel=True, cache=True)
+def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far):
+    """-> means2d [C,N,2], conics [C,N,3], depths [C,N], radii [C,N] int32, colors [C,N,3] (SH; zeros if deg < 0)."""
+    c_n, n = viewmats.shape[0], means.shape[0]
+    dt = means.dtype
+    means2d = np.zeros((c_n, n, 2), dt)
+    conics = np.zeros((c_n, n, 3), dt)
+    depths = np.zeros((c_n, n), dt)
+    radii = np.zeros((c_n, n), np.int32)
+    colors = np.zeros((c_n, n, 3), dt)
+    for c in range(c_n):
+        Rw = viewmats[c, :3, :3].astype(np.float64)
+        for chunk in prange((n + CHUNK - 1) // CHUNK):
+            sc = np.empty((5, 3, 3))
+            basis = np.empty(16)
+            for g in range(chunk * CHUNK, min(n, chunk * CHUNK + CHUNK)):
+                _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height,
+                             near, far, means2d, conics, depths, radii, colors, Rw, sc, basis)
+    return means2d, conics, depths, radii, colors
+
+
+@njit(cache=True)
+def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, colors,
+                     g_means2d, g_conics, g_depths, g_colors, g_means, g_coeffs, g_cov, pose_part, Rw, sc, sh):
+    """Backward of `_project_one` for (c, g): adds into g_means, g_coeffs, g_cov (world covariance), pose_part."""
+    fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+    x = Rw[0, 0] * means[g, 0] + Rw[0, 1] * means[g, 1] + Rw[0, 2] * means[g, 2] + viewmats[c, 0, 3]
+    y = Rw[1, 0] * means[g, 0] + Rw[1, 1] * means[g, 1] + Rw[1, 2] * means[g, 2] + viewmats[c, 1, 3]
+    z = Rw[2, 0] * means[g, 0] + Rw[2, 1] * means[g, 1] + Rw[2, 2] * means[g, 2] + viewmats[c, 2, 3]
+    cov, covc, t33, g_covc, gR = sc[2], sc[3], sc[4], sc[5], sc[6]
+    _camera_cov(quats[g], scales[g], Rw, sc[0], sc[1], cov, covc, t33)
+    j00, j02, j11, j12, free_x, free_y, rx, ry = _jacobian(x, y, z, fx, fy, cx, cy, width, height)
+    J = sc[7, :2, :]
+    J[0, 0], J[0, 1], J[0, 2], J[1, 0], J[1, 1], J[1, 2] = j00, 0.0, j02, 0.0, j11, j12
+    jc = sc[8, :2, :]
+    _mm(J, covc, jc)                                       # J covc [2, 3]
+    a = jc[0, 0] * J[0, 0] + jc[0, 2] * J[0, 2] + EPS2D
+    b = jc[0, 1] * J[1, 1] + jc[0, 2] * J[1, 2]
+    cc = jc[1, 1] * J[1, 1] + jc[1, 2] * J[1, 2] + EPS2D
+    det = max(a * cc - b * b, 1e-10)
+    qa, qb, qc = cc / det, -b / det, a / det
+    ga, gb, gc = g_conics[c, g, 0], 0.5 * g_conics[c, g, 1], g_conics[c, g, 2]
+    # d loss / d cov2d = -Q G Q (Q = conic matrix, G = its symmetric gradient)
+    g2_00 = -(qa * (qa * ga + qb * gb) + qb * (qa * gb + qb * gc))
+    g2_01 = -(qa * (qb * ga + qc * gb) + qb * (qb * gb + qc * gc))
+    g2_11 = -(qb * (qb * ga + qc * gb) + qc * (qb * gb + qc * gc))
+    for i in range(3):
+        for j in range(3):
+            g_covc[i, j] = (J[0, i] * (g2_00 * J[0, j] + g2_01 * J[1, j])
+                            + J[1, i] * (g2_01 * J[0, j] + g2_11 * J[1, j]))
+    # gJ = 2 g2 (J covc)
+    gj00 = 2 * (g2_00 * jc[0, 0] + g2_01 * jc[1, 0])
+    gj02 = 2 * (g2_00 * jc[0, 2] + g2_01 * jc[1, 2])
+    gj11 = 2 * (g2_01 * jc[0, 1] + g2_11 * jc[1, 1])
+    gj12 = 2 * (g2_01 * jc[0, 2] + g2_11 * jc[1, 2])
+    gu, gv = g_means2d[c, g, 0], g_means2d[c, g, 1]
+    z2 = z * z
+    gx = fx / z * gu
+    gy = fy / z * gv
+    gz = -fx * x / z2 * gu - fy * y / z2 * gv + g_depths[c, g]
+    gz += -fx / z2 * gj00 - fy / z2 * gj11 + fx * rx / z2 * gj02 + fy * ry / z2 * gj12
+    if free_x:
+        gx += -fx / z2 * gj02
+        gz += fx * x / (z2 * z) * gj02
+    if free_y:
+        gy += -fy / z2 * gj12
+        gz += fy * y / (z2 * z) * gj12
+    # covc = Rw cov Rw^T: g_cov += Rw^T g_covc Rw ; gR = 2 g_covc Rw cov
+    _mm(Rw.T, g_covc, t33)
+    for i in range(3):
+        for j in range(3):
+            g_cov[i, j] += t33[i, 0] * Rw[0, j] + t33[i, 1] * Rw[1, j] + t33[i, 2] * Rw[2, j]
+    _mm(g_covc, Rw, t33)
+    _mm(t33, cov, gR)
+    g_mc = (gx, gy, gz)
+    for i in range(3):
+        for j in range(3):
+            pose_part[c, g, 3 * i + j] = 2 * gR[i, j] + g_mc[i] * means[g, j]
+            g_means[g, j] += Rw[i, j] * g_mc[i]
+        pose_part[c, g, 9 + i] = g_mc[i]
+    if sh_degree >= 0:
+        basis, bx, by, bz = sh[0], sh[1], sh[2], sh[3]
+        d0, d1, d2 = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
+        nd = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        u0, u1, u2 = d0 / nd, d1 / nd, d2 / nd
+        _sh_basis(u0, u1, u2, basis)
+        _sh_basis_grad(u0, u1, u2, bx, by, bz)
+        gd0 = 0.0
+        gd1 = 0.0
+        gd2 = 0.0
+        for ch in range(3):
+            gcol = g_colors[c, g, ch] if colors[c, g, ch] > 0.0 else 0.0
+            for k in range((sh_degree + 1) ** 2):
+                g_coeffs[g, k, ch] += basis[k] * gcol
+                gd0 += bx[k] * coeffs[g, k, ch] * gcol
+                gd1 += by[k] * coeffs[g, k, ch] * gcol
+                gd2 += bz[k] * coeffs[g, k, ch] * gcol
+        dot = u0 * gd0 + u1 * gd1 + u2 * gd2
+        gm = ((gd0 - u0 * dot) / nd, (gd1 - u1 * dot) / nd, (gd2 - u2 * dot) / nd)
+        for i in range(3):
+            g_means[g, i] += gm[i]
+            pose_part[c, g, 12 + i] = -gm[i]
+
+
+@njit(cache=True)
+def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
+    """Chain d loss / d world covariance into the (unnormalised) quaternion and the scales of Gaussian g."""
+    nrm, w, x, y, z = _quat_rot(quats[g], R)
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = R[i, j] * scales[g, j]
+    for i in range(3):
+        for j in range(3):
+            gM[i, j] = ((g_cov[i, 0] + g_cov[0, i]) * M[0, j] + (g_cov[i, 1] + g_cov[1, i]) * M[1, j]
+                        + (g_cov[i, 2] + g_cov[2, i]) * M[2, j])
+    for j in range(3):
+        g_scales[g, j] = gM[0, j] * R[0, j] + gM[1, j] * R[1, j] + gM[2, j] * R[2, j]
+        for i in range(3):
+            gM[i, j] *= scales[g, j]
+    G = gM
+    gw = 2 * (-z * G[0, 1] + y * G[0, 2] + z * G[1, 0] - x * G[1, 2] - y * G[2, 0] + x * G[2, 1])
+    gx = 2 * (y * G[0, 1] + z * G[0, 2] + y * G[1, 0] - 2 * x * G[1, 1] - w * G[1, 2] + z * G[2, 0]
+              + w * G[2, 1] - 2 * x * G[2, 2])
+    gy = 2 * (-2 * y * G[0, 0] + x * G[0, 1] + w * G[0, 2] + x * G[1, 0] + z * G[1, 2] - w * G[2, 0]
+              + z * G[2, 1] - 2 * y * G[2, 2])
+    gz = 2 * (-2 * z * G[0, 0] - w * G[0, 1] + x * G[0, 2] + w * G[1, 0] - 2 * z * G[1, 1] + y * G[1, 2]
+              + x * G[2, 0] + y * G[2, 1])
+    dot = w * gw + x * gx + y * gy + z * gz
+    g_quats[g, 0] = (gw - w * dot) / nrm
+    g_quats[g, 1] = (gx - x * dot) / nrm
+    g_quats[g, 2] = (gy - y * dot) / nrm
+    g_quats[g, 3] = (gz - z * dot) / nrm
+
+
+@njit(parallel=True, cache=True)
+def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii, colors,
+                g_means2d, g_conics, g_depths, g_colors):
+    """-> g_means [N,3], g_quats [N,4], g_scales [N,3], g_coeffs [N,K,3], g_viewmats [C,4,4], g_campos [C,3]."""
+    c_n, n = viewmats.shape[0], means.shape[0]
+    dt = means.dtype
+    g_means = np.zeros((n, 3), dt)
+    g_quats = np.zeros((n, 4), dt)
+    g_scales = np.zeros((n, 3), dt)
+    g_coeffs = np.zeros(coeffs.shape, dt)
+    pose_part = np.zeros((c_n, n, 15))  # per (camera, Gaussian): d Rw (9), d t (3), d campos (3)
+    Rws = viewmats[:, :3, :3].astype(np.float64)
+    for chunk in prange((n + CHUNK - 1) // CHUNK):
+        sc = np.zeros((9, 3, 3))
+        sh = np.empty((4, 16))
+        g_cov = np.empty((3, 3))
+        for g in range(chunk * CHUNK, min(n, chunk * CHUNK + CHUNK)):
+            g_cov[:] = 0.0
+            seen = False
+            for c in range(c_n):
+                if radii[c, g] > 0:
+                    seen = True
+                    _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width,
+                                     height, colors, g_means2d, g_conics, g_depths, g_colors, g_means, g_coeffs,
+                                     g_cov, pose_part, Rws[c], sc, sh)
+            if seen:
+                _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, sc[0], sc[1], sc[2])
+    pose = pose_part.sum(axis=1)                           # [C, 15], fixed summation order
+    g_viewmats = np.zeros((c_n, 4, 4), dt)
+    g_campos = np.zeros((c_n, 3), dt)
+    for c in range(c_n):
+        for i in range(3):
+            for j in range(3):
+                g_viewmats[c, i, j] = pose[c, 3 * i + j]
+            g_viewmats[c, i, 3] = pose[c, 9 + i]
+            g_campos[c, i] = pose[c, 12 + i]
+    return g_means, g_quats, g_scales, g_coeffs, g_viewmats, g_campos

@@ -1,0 +1,179 @@
+"""The NGS infill: opaque noise Gaussians that fill the object's inside, never its outside.
+
+Candidates come from multi-scale voxel levels inside the convex hull (Quickhull) of the surface
+means. After each level, depth pruning removes noise that any training view sees before the
+surface (or sees with no surface at all), and a 3D erosion pulls the new noise back from the
+boundary. Levels are aligned on cell centres of nested grids, so a coarse cell is exactly its
+2x2x2 finer cells (the reference's node grid drifts by up to one fine voxel per level).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.ndimage import binary_erosion
+from scipy.spatial import ConvexHull, QhullError
+
+from station.errors import BadInputError
+from station.ngs.raster import pixel_contributors
+
+RGBCMY = torch.tensor(
+    [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 1.0, 1.0], [1.0, 0, 1.0], [1.0, 1.0, 0]]
+)  # [6, 3]
+
+
+@dataclass
+class InfillConfig:
+    levels: tuple[int, ...] = (32, 64, 128, 256)
+    erosion_iters: tuple[int, ...] = (3, 4, 5, 6)
+    first_opacity: float = 0.01  # noise opacity while pruning, first level
+    finer_opacity: float = 0.005  # ... finer levels
+    pad: float = 0.05  # bounding box padding per side
+    prune_downscale: int = 4  # depth pruning renders at 1/4 resolution
+    depth_prune: bool = True
+    erosion: bool = True
+
+
+@dataclass
+class Infill:
+    means: torch.Tensor  # [M, 3]
+    scales: torch.Tensor  # [M] isotropic, linear
+    levels: torch.Tensor  # [M] the grid resolution R each came from
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    def gaussians(self, opacity: float | torch.Tensor) -> dict[str, torch.Tensor]:
+        """Rasteriser inputs with identity rotation; opacity a scalar or [M]."""
+        m = len(self)
+        quats = torch.zeros(m, 4)
+        quats[:, 0] = 1
+        opacities = torch.as_tensor(opacity, dtype=torch.float32).expand(m).clone()
+        return {"means": self.means, "quats": quats, "scales": self.scales[:, None].repeat(1, 3), "opacities": opacities}
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"means": self.means, "scales": self.scales, "levels": self.levels}
+
+    @staticmethod
+    def from_state_dict(data: dict) -> "Infill":
+        return Infill(data["means"].float(), data["scales"].float(), data["levels"].long())
+
+    def select(self, keep: torch.Tensor) -> "Infill":
+        return Infill(self.means[keep], self.scales[keep], self.levels[keep])
+
+
+@dataclass
+class Camera:
+    viewmat: torch.Tensor  # [4, 4] world-to-camera, OpenCV
+    K: torch.Tensor  # [3, 3]
+    width: int
+    height: int
+
+
+def random_rgbcmy(count: int, generator: torch.Generator) -> torch.Tensor:
+    """[count, 3] colours drawn from {R, G, B, C, M, Y}."""
+    return RGBCMY[torch.randint(0, 6, (count,), generator=generator)]
+
+
+def hull_equations(points: np.ndarray) -> np.ndarray:
+    """[F, 4] outward facet planes of the Quickhull convex hull: inside iff n.x + d <= 0 for all."""
+    try:
+        return ConvexHull(points).equations
+    except QhullError as exc:
+        raise BadInputError(f"cannot build the infill: surface means span no volume ({exc})") from exc
+
+
+def candidate_cells(covered: np.ndarray, origin: np.ndarray, h: float, planes: np.ndarray) -> np.ndarray:
+    """[K, 3] cells of this level not covered by a coarser one whose centre lies inside the hull.
+
+    Works one x-slab at a time so a 256^3 level never materialises all its centres at once.
+    """
+    found = []
+    for i in range(covered.shape[0]):
+        free = np.argwhere(~covered[i])  # [F, 2]
+        if len(free) == 0:
+            continue
+        cells = np.concatenate([np.full((len(free), 1), i), free], axis=1)  # [F, 3]
+        centres = origin + (cells + 0.5) * h
+        inside = (centres @ planes[:, :3].T + planes[:, 3] <= 1e-12).all(axis=1)
+        found.append(cells[inside])
+    return np.concatenate(found) if found else np.zeros((0, 3), dtype=np.int64)
+
+
+def depth_prune_mask(surface: dict[str, torch.Tensor], noise: dict[str, torch.Tensor], cameras: list[Camera]) -> torch.Tensor:
+    """[M] bool: noise some view sees before the first surface Gaussian, or with no surface."""
+    n = surface["means"].shape[0]
+    m = noise["means"].shape[0]
+    marked = torch.zeros(m, dtype=torch.bool)
+    if m == 0:
+        return marked
+    joined = {key: torch.cat([surface[key].detach(), noise[key]]) for key in ("means", "quats", "scales", "opacities")}
+    for cam in cameras:
+        offsets, ids = pixel_contributors(
+            joined["means"], joined["quats"], joined["scales"], joined["opacities"], cam.viewmat, cam.K, cam.width, cam.height
+        )  # [P+1], [E]
+        counts = offsets[1:] - offsets[:-1]  # [P]
+        pixel = torch.repeat_interleave(torch.arange(len(counts)), counts)  # [E]
+        rank = torch.arange(len(ids)) - offsets[pixel]  # position in the pixel's front-to-back list
+        is_surface = ids < n
+        first_surface = torch.full((len(counts),), len(ids) + 1, dtype=torch.long)
+        first_surface.scatter_reduce_(0, pixel[is_surface], rank[is_surface], reduce="amin")
+        in_front = ~is_surface & (rank < first_surface[pixel])
+        marked[ids[in_front] - n] = True
+    return marked
+
+
+def build_infill(surface: dict[str, torch.Tensor], cameras: list[Camera], cfg: InfillConfig) -> Infill:
+    """surface: activated means [N,3], quats [N,4], scales [N,3], opacities [N]; full-res cameras."""
+    if len(cfg.levels) != len(cfg.erosion_iters) or not cfg.levels:
+        raise BadInputError(f"infill levels {cfg.levels} and erosion iterations {cfg.erosion_iters} must pair up")
+    for coarse, fine in zip(cfg.levels, cfg.levels[1:]):
+        if fine % coarse:
+            raise BadInputError(f"infill level {fine} is not a multiple of {coarse}: levels must nest")
+    points = surface["means"].detach().double().numpy()
+    planes = hull_equations(points)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    pad = cfg.pad * (hi - lo)
+    side = float(((hi + pad) - (lo - pad)).max())
+    origin = (lo + hi) / 2 - side / 2
+    ds = cfg.prune_downscale
+    small = []
+    for cam in cameras:
+        K = cam.K.clone()
+        K[:2] /= ds
+        small.append(Camera(cam.viewmat, K, max(1, cam.width // ds), max(1, cam.height // ds)))
+    occupied = np.zeros((1, 1, 1), dtype=bool)
+    parts: list[Infill] = []
+    for index, (res, iters) in enumerate(zip(cfg.levels, cfg.erosion_iters)):
+        h = side / res
+        covered = occupied
+        for axis in range(3):
+            covered = np.repeat(covered, res // occupied.shape[0], axis=axis)
+        cells = candidate_cells(covered, origin, h, planes)  # [K, 3]
+        centres = origin + (cells + 0.5) * h
+        level = Infill(
+            torch.as_tensor(centres, dtype=torch.float32),
+            torch.full((len(cells),), 0.5 * h, dtype=torch.float32),
+            torch.full((len(cells),), res, dtype=torch.long),
+        )
+        if cfg.depth_prune and len(level):
+            opacity = cfg.first_opacity if index == 0 else cfg.finer_opacity
+            keep = ~depth_prune_mask(surface, level.gaussians(opacity), small)
+            level, cells = level.select(keep), cells[keep.numpy()]
+        grid = covered.copy()
+        grid[tuple(cells.T)] = True
+        if cfg.erosion and iters > 0 and len(level):  # scipy reads iterations=0 as "until stable"
+            eroded = binary_erosion(grid, structure=np.ones((3, 3, 3), bool), iterations=iters, border_value=0)
+            keep_np = eroded[tuple(cells.T)]
+            level, cells = level.select(torch.from_numpy(keep_np)), cells[keep_np]
+            grid = covered.copy()
+            grid[tuple(cells.T)] = True
+        occupied = grid
+        parts.append(level)
+    return Infill(
+        torch.cat([p.means for p in parts]).reshape(-1, 3),
+        torch.cat([p.scales for p in parts]),
+        torch.cat([p.levels for p in parts]),
+    )

@@ -1,0 +1,103 @@
+"""Training losses: 0.8 L1 + 0.2 D-SSIM on the mask's crop, and the alpha losses.
+
+The image term looks only at the mask's bounding box (GT times mask, black background) so the
+empty turntable surround does not dilute the gradient. The alpha terms are what stop false
+transparency without NGS: L_bg pushes alpha to 0 off the object, L_fg pushes it to 1 on the
+object's eroded interior (eroded so that soft mask edges are not forced opaque).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+
+
+@dataclass
+class LossConfig:
+    ssim_lambda: float = 0.2
+    bg_weight: float = 1.0  # L_bg; 0 switches it off
+    fg_weight: float = 1.0  # L_fg (the ablations' L_f); 0 switches it off
+    crop_threshold: float = 0.1
+
+
+def _gaussian_window(channels: int) -> torch.Tensor:
+    coords = torch.arange(SSIM_WINDOW, dtype=torch.float32) - SSIM_WINDOW // 2
+    g = torch.exp(-(coords**2) / (2 * SSIM_SIGMA**2))
+    g = g / g.sum()
+    window = (g[:, None] * g[None, :])[None, None]  # [1, 1, 11, 11]
+    return window.repeat(channels, 1, 1, 1)  # [C, 1, 11, 11]
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of two [H,W,C] images in [0,1] ('valid' windows, as fused-ssim in training)."""
+    x = a.permute(2, 0, 1)[None]  # [1, C, H, W]
+    y = b.permute(2, 0, 1)[None]
+    channels = x.shape[1]
+    window = _gaussian_window(channels).to(x)
+    mu_x = F.conv2d(x, window, groups=channels)
+    mu_y = F.conv2d(y, window, groups=channels)
+    sxx = F.conv2d(x * x, window, groups=channels) - mu_x**2
+    syy = F.conv2d(y * y, window, groups=channels) - mu_y**2
+    sxy = F.conv2d(x * y, window, groups=channels) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    value = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+    return value.mean()
+
+
+def mask_bbox(mask: torch.Tensor, threshold: float) -> tuple[slice, slice]:
+    """Rows/cols slice of the mask > threshold box, grown to at least one SSIM window."""
+    height, width = mask.shape
+    ys, xs = torch.nonzero(mask > threshold, as_tuple=True)
+    if len(ys) == 0:
+        return slice(0, height), slice(0, width)
+    bounds = []
+    for lo, hi, size in ((int(ys.min()), int(ys.max()) + 1, height), (int(xs.min()), int(xs.max()) + 1, width)):
+        need = min(SSIM_WINDOW, size)
+        if hi - lo < need:
+            lo = min(max((lo + hi) // 2 - need // 2, 0), size - need)
+            hi = lo + need
+        bounds.append(slice(lo, hi))
+    return bounds[0], bounds[1]
+
+
+def erode_mask(mask: torch.Tensor) -> torch.Tensor:
+    """One 3x3 min filter: M_e, the mask's interior. [H,W] -> [H,W]."""
+    return -F.max_pool2d(-mask[None, None], kernel_size=3, stride=1, padding=1)[0, 0]
+
+
+def image_loss(render: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None, cfg: LossConfig) -> torch.Tensor:
+    """0.8 L1 + 0.2 (1 - SSIM) on the mask's bounding box; GT is masked, background black."""
+    if mask is not None:
+        gt = gt * mask[..., None]
+        rows, cols = mask_bbox(mask, cfg.crop_threshold)
+        render, gt = render[rows, cols], gt[rows, cols]
+    l1 = (render - gt).abs().mean()
+    return (1 - cfg.ssim_lambda) * l1 + cfg.ssim_lambda * (1 - ssim(render, gt))
+
+
+def alpha_losses(alpha: torch.Tensor, mask: torch.Tensor, cfg: LossConfig) -> dict[str, torch.Tensor]:
+    """L_bg = sum a(1-M)/sum(1-M); L_fg = sum (1-a)M_e/sum M_e. alpha, mask: [H,W]."""
+    terms: dict[str, torch.Tensor] = {}
+    if cfg.bg_weight > 0:
+        background = 1 - mask
+        terms["bg"] = cfg.bg_weight * (alpha * background).sum() / background.sum().clamp_min(1e-6)
+    if cfg.fg_weight > 0:
+        interior = erode_mask(mask)
+        terms["fg"] = cfg.fg_weight * ((1 - alpha) * interior).sum() / interior.sum().clamp_min(1e-6)
+    return terms
+
+
+def total_loss(
+    render: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None, cfg: LossConfig
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """render/gt [H,W,3], alpha [H,W], mask [H,W] or None (then only the image term)."""
+    terms = {"image": image_loss(render, gt, mask, cfg)}
+    if mask is not None:
+        terms.update(alpha_losses(alpha, mask, cfg))
+    loss = torch.stack(list(terms.values())).sum()
+    return loss, {name: float(value.detach()) for name, value in terms.items()}

@@ -1,0 +1,57 @@
+"""Train a scan folder end to end: pick the preset, load the posed views, train, write model/.
+
+The CLI's `station train` calls `train_scan`; everything it writes goes through the atomic writers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from station.ngs.dataset import load_scene
+from station.ngs.presets import make_config
+from station.ngs.trainer import Trainer, TrainReport
+from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
+
+
+def write_model(trainer: Trainer, report: TrainReport) -> None:
+    """model/surface.pt, model/infill.pt (NGS) and model/train_metrics.json, each atomically."""
+    model_dir = trainer.model_dir
+    surface = {
+        "params": trainer.model.state_dict(),
+        "sh_degree": trainer.cfg.sh_degree,
+        "scene_scale": trainer.scene.scene_scale,
+        "downscale": trainer.cfg.downscale,
+        "method": trainer.cfg.method,
+    }
+    atomic_write_with(model_dir / "surface.pt", lambda tmp: torch.save(surface, tmp))
+    infill_path = model_dir / "infill.pt"
+    if trainer.ngs and trainer.ngs.infill is not None:
+        infill = trainer.ngs.infill.state_dict()
+        atomic_write_with(infill_path, lambda tmp: torch.save(infill, tmp))
+    else:
+        infill_path.unlink(missing_ok=True)  # a stale infill from another method must not score this model
+    metrics = {
+        "report": asdict(report),
+        "config": asdict(trainer.cfg),
+        "losses": trainer.losses,
+        "densify": trainer.strategy.state.history,
+        "ngs": trainer.ngs.history if trainer.ngs else [],
+    }
+    atomic_write_json(model_dir / "train_metrics.json", metrics)
+
+
+def train_scan(scan_root: Path, method: str = "ngs", preset: str = "fast",
+               progress: Callable[[int, dict], None] | None = None) -> TrainReport:
+    """Train `method` with `preset` on a posed scan folder; resumes from model/checkpoint.pt."""
+    scan = ScanFolder(scan_root)
+    cfg = make_config(method, preset)
+    scene = load_scene(scan.root, downscale=cfg.downscale, seed=cfg.seed)
+    trainer = Trainer(scene, cfg, scan.model_dir)
+    report = trainer.run(progress)
+    write_model(trainer, report)
+    scan.mark_done("train", asdict(report))
+    return report

@@ -1,0 +1,267 @@
+"""The one entry point for rendering Gaussians: `rasterization()` and the per-pixel `pixel_contributors()`.
+
+Backends share gsplat's conventions (see `raster_reference`): "torch" is the dense plain-torch reference,
+"cpu" the tile-parallel numba kernels, "gsplat" the CUDA library (imported lazily; untested here, as no
+GPU is available). "auto" picks gsplat for CUDA tensors when it is installed, else the numba kernels.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from station.errors import BadInputError
+from station.ngs import _kernels, _project_kernels
+from station.ngs import raster_reference as ref
+
+Backend = Literal["auto", "cpu", "torch", "gsplat"]
+RenderMode = Literal["RGB", "RGB+ED"]
+
+
+def _host(x: Tensor) -> np.ndarray:
+    """numpy view for cheap checks: small torch ops cost 15-30x more CPU beside numba's thread pool."""
+    return x.detach().cpu().numpy()
+
+
+def _check_finite(name: str, x: Tensor) -> None:
+    if not torch.is_tensor(x):
+        raise BadInputError(f"rasterization: {name} must be a torch.Tensor, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise BadInputError(f"rasterization: {name} must be a floating-point tensor, got {x.dtype}")
+    if not np.isfinite(_host(x)).all():
+        raise BadInputError(f"rasterization: {name} contains NaN or inf")
+
+
+def _validate(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor,
+              Ks: Tensor, width: int, height: int, sh_degree: int | None, backgrounds: Tensor | None) -> None:
+    named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+             "viewmats": viewmats, "Ks": Ks}
+    if backgrounds is not None:
+        named["backgrounds"] = backgrounds
+    for name, x in named.items():
+        _check_finite(name, x)
+    n = means.shape[0] if means.dim() == 2 else -1
+    expected = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
+    for name, shape in expected.items():
+        if tuple(named[name].shape) != shape or n < 0:
+            raise BadInputError(f"rasterization: {name} must have shape {shape} for N={n}, got {tuple(named[name].shape)}")
+    if sh_degree is None:
+        if tuple(colors.shape) != (n, 3):
+            raise BadInputError(f"rasterization: colors must be [N, 3] RGB without sh_degree, got {tuple(colors.shape)}")
+    else:
+        if not 0 <= sh_degree <= 3:
+            raise BadInputError(f"rasterization: sh_degree must be 0..3, got {sh_degree}")
+        if colors.dim() != 3 or colors.shape[0] != n or colors.shape[2] != 3 or colors.shape[1] < (sh_degree + 1) ** 2:
+            raise BadInputError(f"rasterization: colors must be [N, K>={(sh_degree + 1) ** 2}, 3] SH coefficients "
+                                f"for sh_degree={sh_degree}, got {tuple(colors.shape)}")
+    if viewmats.dim() != 3 or viewmats.shape[1:] != (4, 4):
+        raise BadInputError(f"rasterization: viewmats must be [C, 4, 4], got {tuple(viewmats.shape)}")
+    if tuple(Ks.shape) != (viewmats.shape[0], 3, 3):
+        raise BadInputError(f"rasterization: Ks must be [C, 3, 3] matching viewmats, got {tuple(Ks.shape)}")
+    if backgrounds is not None and tuple(backgrounds.shape) != (viewmats.shape[0], 3):
+        raise BadInputError(f"rasterization: backgrounds must be [C, 3], got {tuple(backgrounds.shape)}")
+    if int(width) < 1 or int(height) < 1:
+        raise BadInputError(f"rasterization: width and height must be >= 1, got {width}x{height}")
+    if (_host(scales) < 0).any():
+        raise BadInputError("rasterization: scales must be linear and >= 0 (exp() log-scales first)")
+    op = _host(opacities)
+    if (op < 0).any() or (op > 1).any():
+        raise BadInputError("rasterization: opacities must lie in [0, 1]")
+    if (np.abs(_host(quats)).sum(-1) == 0).any():
+        raise BadInputError("rasterization: quats contains a zero quaternion")
+
+
+def _resolve_backend(backend: Backend, device: torch.device) -> str:
+    if backend not in ("auto", "cpu", "torch", "gsplat"):
+        raise BadInputError(f"rasterization: unknown backend {backend!r}")
+    if backend == "auto":
+        if device.type == "cuda":
+            try:
+                import gsplat  # noqa: F401
+            except ImportError:
+                return "torch"
+            return "gsplat"
+        return "cpu"
+    if backend == "gsplat" and device.type != "cuda":
+        raise BadInputError("rasterization: backend='gsplat' needs CUDA tensors")
+    return backend
+
+
+def rasterization(
+    means: Tensor,        # [N, 3] world
+    quats: Tensor,        # [N, 4] wxyz, unnormalised
+    scales: Tensor,       # [N, 3] linear scales
+    opacities: Tensor,    # [N] in [0, 1]
+    colors: Tensor,       # [N, 3] RGB, or [N, K, 3] SH coefficients with sh_degree
+    viewmats: Tensor,     # [C, 4, 4] world-to-camera, OpenCV
+    Ks: Tensor,           # [C, 3, 3]
+    width: int,
+    height: int,
+    *,
+    sh_degree: int | None = None,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    backgrounds: Tensor | None = None,  # [C, 3]
+    render_mode: RenderMode = "RGB",
+    backend: Backend = "auto",
+) -> tuple[Tensor, Tensor, dict]:
+    """Render C cameras -> colours [C,H,W,3] (+ expected depth as a 4th channel for "RGB+ED"), alphas [C,H,W,1], meta.
+
+    Expected depth follows gsplat: sum(w_i z_i) / sum(w_i), i.e. normalised by the rendered alpha (0 where
+    alpha is 0). meta holds "means2d" [C,N,2] (call .retain_grad() on it before backward for densification
+    statistics), "radii" [C,N] int32 (0 = culled), "depths" [C,N], "width", "height".
+    """
+    _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds)
+    if render_mode not in ("RGB", "RGB+ED"):
+        raise BadInputError(f"rasterization: unknown render_mode {render_mode!r}")
+    width, height = int(width), int(height)
+    chosen = _resolve_backend(backend, means.device)
+    if chosen == "gsplat":
+        return _gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
+                       near_plane, far_plane, backgrounds, render_mode)
+    render, alphas, meta = _render(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
+                                   near_plane, far_plane, backgrounds, render_mode == "RGB+ED", chosen == "cpu")
+    if render_mode == "RGB+ED":
+        depth = render[..., 3:4] / alphas.clamp(min=1e-10)
+        render = torch.cat([render[..., :3], depth], dim=-1)
+    meta.update(width=width, height=height)
+    return render, alphas, meta
+
+
+def _render(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, near_plane,
+            far_plane, backgrounds, with_depth: bool, compiled: bool) -> tuple[Tensor, Tensor, dict]:
+    if compiled:
+        coeffs = colors if sh_degree is not None else colors[:, None, :]              # [N, K, 3]
+        means2d, conics, depths, radii, sh_rgb = _Project.apply(
+            means, quats, scales, coeffs, viewmats, ref.camera_centres(viewmats), Ks, width, height,
+            -1 if sh_degree is None else sh_degree, near_plane, far_plane)             # [C,N,2], [C,N,3], [C,N], ...
+    else:
+        means2d, conics, depths, radii = ref.project(means, quats, scales, viewmats, Ks, width, height,
+                                                     near_plane, far_plane)       # [C,N,2], [C,N,3], [C,N], [C,N]
+    renders, alphas = [], []
+    for c in range(viewmats.shape[0]):
+        if sh_degree is None:
+            rgb = colors                                                         # [N, 3]
+        elif compiled:
+            rgb = sh_rgb[c]                                                      # [N, 3]
+        else:
+            dirs = means - ref.camera_centres(viewmats[c:c + 1])                  # [N, 3]
+            rgb = ref.eval_sh(sh_degree, dirs, colors[:, : (sh_degree + 1) ** 2])
+        feats = torch.cat([rgb, depths[c, :, None]], dim=-1) if with_depth else rgb  # [N, D]
+        bg = backgrounds[c] if backgrounds is not None else means.new_zeros(3)             # [3]
+        bg = torch.cat([bg, bg.new_zeros(1)]) if with_depth else bg                         # [D]
+        if compiled:
+            img, alpha = _Rasterize.apply(means2d[c], conics[c], feats, opacities, radii[c], depths[c], bg,
+                                          width, height)
+        else:
+            img, alpha = ref.rasterize(means2d[c], conics[c], feats, opacities, depths[c], radii[c], width,
+                                       height, bg)
+        renders.append(img)
+        alphas.append(alpha)
+    meta = {"means2d": means2d, "radii": radii, "depths": depths}
+    return torch.stack(renders), torch.stack(alphas), meta
+
+
+class _Project(torch.autograd.Function):
+    """Fused numba EWA projection + SH colour for all cameras; hand-derived backward incl. the pose."""
+
+    @staticmethod
+    def forward(ctx, means: Tensor, quats: Tensor, scales: Tensor, coeffs: Tensor, viewmats: Tensor,
+                campos: Tensor, Ks: Tensor, width: int, height: int, sh_degree: int, near: float, far: float):
+        arrays = [t.detach().contiguous().numpy() for t in (means, quats, scales, coeffs)]
+        cams = [t.detach().contiguous().numpy() for t in (viewmats, Ks, campos)]
+        means2d, conics, depths, radii, colors = _project_kernels.project_fwd(
+            *arrays, sh_degree, cams[0], cams[1], cams[2], width, height, near, far)
+        ctx.state = (arrays, cams, width, height, sh_degree, radii, colors)
+        ctx.mark_non_differentiable(radii_t := torch.from_numpy(radii))
+        return (torch.from_numpy(means2d), torch.from_numpy(conics), torch.from_numpy(depths), radii_t,
+                torch.from_numpy(colors))
+
+    @staticmethod
+    def backward(ctx, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor, g_radii: Tensor, g_colors: Tensor):
+        arrays, cams, width, height, sh_degree, radii, colors = ctx.state
+        grads = _project_kernels.project_bwd(
+            *arrays, sh_degree, cams[0], cams[1], cams[2], width, height, radii, colors,
+            *(g.contiguous().numpy() for g in (g_means2d, g_conics, g_depths, g_colors)))
+        g_means, g_quats, g_scales, g_coeffs, g_viewmats, g_campos = (torch.from_numpy(g) for g in grads)
+        # Ks, width, height, sh_degree, near, far get no gradient
+        return g_means, g_quats, g_scales, g_coeffs, g_viewmats, g_campos, None, None, None, None, None, None
+
+
+class _Rasterize(torch.autograd.Function):
+    """numba tile compositing for one camera; backward reduces per-intersection gradients per Gaussian."""
+
+    @staticmethod
+    def forward(ctx, means2d: Tensor, conics: Tensor, feats: Tensor, opacities: Tensor, radii: Tensor,
+                depths: Tensor, background: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
+        arrays = [t.detach().contiguous().numpy() for t in (means2d, conics, feats, opacities)]
+        fast = means2d.dtype == torch.float32
+        bins = _kernels.bin_gaussians(arrays[0], radii.numpy(), depths.detach().numpy(), width, height)
+        img, t_final, n_proc = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], width, height, fast)
+        ctx.state = (arrays, background.detach().numpy(), bins, img, t_final, n_proc, width, height, fast)
+        t_final_t = torch.from_numpy(t_final)[..., None]                                   # [H, W, 1]
+        return torch.from_numpy(img) + t_final_t * background, 1 - t_final_t
+
+    @staticmethod
+    def backward(ctx, g_img: Tensor, g_alpha: Tensor):
+        arrays, bg, bins, img, t_final, n_proc, width, height, fast = ctx.state
+        gm, gc, gcol, gop = _kernels.rasterize_bwd(*arrays, bg, bins[0], bins[1], width, height, img, t_final, n_proc,
+                                                   g_img.contiguous().numpy(), g_alpha[..., 0].contiguous().numpy(),
+                                                   fast)
+        slots = np.concatenate([gm, gc, gcol, gop[:, None]], axis=1)                        # [M, 6 + D]
+        red = torch.from_numpy(_kernels.reduce_per_gaussian(slots, bins[2], bins[3]))       # [N, 6 + D]
+        d = gcol.shape[1]
+        g_bg = (g_img * torch.from_numpy(t_final)[..., None]).sum((0, 1))                  # [D]
+        # radii, depths (order only), width, height get no gradient
+        return red[:, :2], red[:, 2:5], red[:, 5:5 + d], red[:, 5 + d], None, None, g_bg, None, None
+
+
+def _gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, near_plane, far_plane,
+            backgrounds, render_mode) -> tuple[Tensor, Tensor, dict]:
+    """CUDA path through gsplat (imported only here). Untested in this repository: no GPU in CI."""
+    import gsplat
+
+    render, alphas, g_meta = gsplat.rasterization(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
+        far_plane=far_plane, sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
+        eps2d=ref.EPS2D, packed=False, rasterize_mode="classic", tile_size=ref.TILE)
+    radii = g_meta["radii"]
+    if radii.dim() == 3:  # gsplat >= 1.5 returns per-axis radii [C, N, 2]
+        radii = radii.amax(dim=-1)
+    meta = {"means2d": g_meta["means2d"], "radii": radii.int(), "depths": g_meta["depths"],
+            "width": width, "height": height}
+    return render, alphas, meta
+
+
+def pixel_contributors(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor, width: int,
+    height: int, *, near_plane: float = 0.01, backend: Backend = "auto",
+) -> tuple[Tensor, Tensor]:
+    """Per pixel (row-major), ids of the Gaussians it composites, front to back -> offsets [H*W+1], ids [M].
+
+    Honours the same skip (alpha < 1/255) and stop (T <= 1e-4) rules as `rasterization`, so recompositing
+    the listed Gaussians reproduces the rendered alpha. Used by NGS depth pruning.
+    """
+    if not (torch.is_tensor(viewmat) and tuple(viewmat.shape) == (4, 4)):
+        raise BadInputError("pixel_contributors: viewmat must be a [4, 4] tensor")
+    if not (torch.is_tensor(K) and tuple(K.shape) == (3, 3)):
+        raise BadInputError("pixel_contributors: K must be a [3, 3] tensor")
+    rgb = means.new_zeros(means.shape) if torch.is_tensor(means) and means.dim() == 2 else means
+    _validate(means, quats, scales, opacities, rgb, viewmat[None], K[None], width, height, None, None)
+    chosen = _resolve_backend(backend, means.device)
+    with torch.no_grad():
+        m2, conics, depths, radii = ref.project(means, quats, scales, viewmat[None], K[None], int(width),
+                                                int(height), near_plane, 1e10)
+        if chosen != "cpu":
+            return ref.contributors(m2[0], conics[0], opacities, depths[0], radii[0], int(width), int(height))
+        arrays = [t.contiguous().numpy() for t in (m2[0], conics[0], opacities)]
+        fast = means.dtype == torch.float32
+        bins = _kernels.bin_gaussians(arrays[0], radii[0].numpy(), depths[0].numpy(), int(width), int(height))
+        feats = np.zeros((means.shape[0], 1), arrays[0].dtype)
+        _, _, n_proc = _kernels.rasterize_fwd(arrays[0], arrays[1], feats, arrays[2], bins[0], bins[1], int(width),
+                                              int(height), fast)
+        offsets, ids = _kernels.list_contributors(*arrays, bins[0], bins[1], int(width), int(height), n_proc, fast)
+        return torch.from_numpy(offsets), torch.from_numpy(ids)

@@ -1,0 +1,200 @@
+"""The training loop: one image per step, Adam, and hooks for densification and the NGS phases.
+
+Strategy code (strategy.py, ngs_schedule.py) decides what grows, what is pruned and what is
+frozen; this file only renders, takes the loss, steps the optimisers and keeps checkpoints so a
+killed run continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Literal
+
+import torch
+
+from station.errors import TrainingError
+from station.ngs.dataset import SceneData
+from station.ngs.gaussians import Gaussians, num_sh_bases
+from station.ngs.infill import Camera
+from station.ngs.losses import LossConfig, total_loss
+from station.ngs.ngs_schedule import NGSConfig, NGSPhases
+from station.ngs.raster import rasterization
+from station.ngs.strategy import DefaultStrategy, DensifyConfig, DensifyState
+from station.scanfolder import atomic_write_with
+
+Method = Literal["3dgs", "alpha", "ngs"]
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class TrainConfig:
+    method: Method = "ngs"
+    steps: int = 30_000
+    sh_degree: int = 3
+    sh_degree_every: float = 1_000 / 30_000  # raise the SH degree by one every this fraction of the run
+    lr_means: float = 1.6e-4  # x scene_scale, decayed to 1%
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacities: float = 5e-2
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20
+    downscale: int = 1
+    checkpoint_every: int = 500
+    seed: int = 0
+    backend: str = "auto"
+    loss: LossConfig = field(default_factory=LossConfig)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)  # in 30k-step units, scaled to `steps`
+    ngs: NGSConfig = field(default_factory=NGSConfig)
+
+
+@dataclass
+class TrainReport:
+    method: str
+    steps: int
+    seconds: float
+    num_gaussians: int
+    num_infill: int
+    final_loss: float
+    resumed_from: int
+    model_dir: str
+
+
+def check_finite(step: int, named: dict[str, torch.Tensor]) -> None:
+    for name, tensor in named.items():
+        if not bool(torch.isfinite(tensor).all()):
+            raise TrainingError(f"step {step}: {name} holds NaN or inf; training stopped")
+
+
+class Trainer:
+    def __init__(self, scene: SceneData, cfg: TrainConfig, model_dir: Path):
+        self.scene, self.cfg, self.model_dir = scene, cfg, Path(model_dir)
+        self.model = Gaussians.from_points(scene.points, scene.point_colors, cfg.sh_degree, cfg.seed)
+        self.optimizers = self._make_optimizers()
+        self.strategy = DefaultStrategy(cfg.densify.scaled(cfg.steps), scene.scene_scale, cfg.seed)
+        self.ngs = NGSPhases(cfg.ngs, cfg.steps, cfg.seed) if cfg.method == "ngs" else None
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.cameras = [Camera(v.viewmat, v.K, v.width, v.height) for v in scene.train]
+        self.step = 0
+        self.seconds = 0.0
+        self.losses: list[dict] = []
+
+    def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        lrs = {
+            "means": self.cfg.lr_means * self.scene.scene_scale,
+            "scales": self.cfg.lr_scales,
+            "quats": self.cfg.lr_quats,
+            "opacities": self.cfg.lr_opacities,
+            "sh0": self.cfg.lr_sh0,
+            "shN": self.cfg.lr_shN,
+        }
+        return {name: torch.optim.Adam([p], lr=lrs[name], eps=1e-15) for name, p in self.model.params.items()}
+
+    def sh_degree_at(self, step: int) -> int:
+        every = max(1, round(self.cfg.sh_degree_every * self.cfg.steps))
+        return min(step // every, self.cfg.sh_degree)
+
+    def means_lr_at(self, step: int) -> float:
+        factor = self.ngs.means_lr_factor(step) if self.ngs else 0.01 ** (step / self.cfg.steps)
+        return self.cfg.lr_means * self.scene.scene_scale * factor
+
+    def train_step(self, step: int) -> dict[str, float]:
+        """One image, one Adam step; densification and NGS hooks around it."""
+        check_finite(step, {f"parameter {k}": v for k, v in self.model.params.items()})
+        view = self.scene.train[int(torch.randint(len(self.scene.train), (1,), generator=self.generator))]
+        if self.ngs:
+            self.ngs.step_pre(step, {k: v.detach() for k, v in self.model.activated().items()}, self.cameras)
+        frozen = bool(self.ngs and self.ngs.surface_frozen(step))
+        for p in self.model.params.values():
+            p.requires_grad_(not frozen)
+        self.optimizers["means"].param_groups[0]["lr"] = self.means_lr_at(step)
+        g = self.model.activated()
+        noise = self.ngs.noise(g["colors"].shape[1]) if self.ngs else None
+        if noise is not None:
+            g = {k: torch.cat([g[k], noise[k]]) for k in g}
+        colors, alphas, meta = rasterization(
+            g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
+            view.viewmat[None], view.K[None], view.width, view.height,
+            sh_degree=self.sh_degree_at(step), backend=self.cfg.backend,
+        )  # [1, H, W, 3], [1, H, W, 1]
+        if not frozen:
+            self.strategy.step_pre_backward(meta)
+        loss, terms = total_loss(colors[0], alphas[0, ..., 0], view.image, view.mask, self.cfg.loss)
+        check_finite(step, {"loss": loss})
+        if loss.requires_grad:  # False only when the surface is frozen and no noise survived
+            loss.backward()
+        if not frozen:
+            for optimizer in self.optimizers.values():
+                optimizer.step()
+                optimizer.zero_grad(set_to_none=True)
+            self.strategy.step_post_backward(self.model.params, self.optimizers, step, meta)
+        if self.ngs:
+            self.ngs.step_post_backward(step)
+        terms["loss"] = float(loss.detach())
+        return terms
+
+    def run(self, progress: Callable[[int, dict], None] | None = None) -> TrainReport:
+        resumed_from = self.load_checkpoint()
+        started = time.perf_counter() - self.seconds
+        terms: dict[str, float] = {"loss": float("nan")}
+        while self.step < self.cfg.steps:
+            terms = self.train_step(self.step)
+            self.step += 1
+            self.seconds = time.perf_counter() - started
+            if self.step % 100 == 0 or self.step == self.cfg.steps:
+                self.losses.append({"step": self.step, "seconds": round(self.seconds, 2), **terms})
+                if progress:
+                    progress(self.step, terms)
+            if self.step % self.cfg.checkpoint_every == 0 or self.step == self.cfg.steps:
+                self.save_checkpoint()
+        return TrainReport(
+            method=self.cfg.method,
+            steps=self.step,
+            seconds=round(self.seconds, 2),
+            num_gaussians=len(self.model),
+            num_infill=len(self.ngs.infill) if self.ngs and self.ngs.infill is not None else 0,
+            final_loss=terms["loss"],
+            resumed_from=resumed_from,
+            model_dir=str(self.model_dir),
+        )
+
+    # Checkpoints ------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "config": asdict(self.cfg),
+            "step": self.step,
+            "seconds": self.seconds,
+            "model": self.model.state_dict(),
+            "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
+            "strategy": self.strategy.state.state_dict(),
+            "strategy_generator": self.strategy.generator.get_state(),
+            "ngs": self.ngs.state_dict() if self.ngs else None,
+            "generator": self.generator.get_state(),
+            "losses": list(self.losses),
+        }
+
+    def save_checkpoint(self) -> None:
+        state = self.state_dict()
+        atomic_write_with(self.model_dir / CHECKPOINT, lambda tmp: torch.save(state, tmp))
+
+    def load_checkpoint(self) -> int:
+        """Continue from model/checkpoint.pt if it was written by the same configuration."""
+        path = self.model_dir / CHECKPOINT
+        if not path.is_file():
+            return 0
+        state = torch.load(path, weights_only=True)  # the scan folder is untrusted: no pickled code
+        if state["config"] != asdict(self.cfg):
+            raise TrainingError(f"{path}: written by another training configuration; delete it to start over")
+        self.model = Gaussians.from_state_dict(state["model"])
+        self.optimizers = self._make_optimizers()
+        for name, opt in self.optimizers.items():
+            opt.load_state_dict(state["optimizers"][name])
+        self.strategy.state = DensifyState.from_state_dict(state["strategy"])
+        self.strategy.generator.set_state(state["strategy_generator"])
+        if self.ngs:
+            self.ngs.load_state_dict(state["ngs"])
+        self.generator.set_state(state["generator"])
+        self.step, self.seconds, self.losses = state["step"], state["seconds"], list(state["losses"])
+        return self.step
+

@@ -1,0 +1,172 @@
+"""The develop-and-mask stage over a whole scan folder.
+
+Reads manifest.jsonl, takes one white balance for the scan from its neutral plates, scales
+every frame to a common exposure, optionally corrects colour against a chart seen in a plate,
+and writes images/<stem>.png (16-bit sRGB), images_linear/<stem>.exr (half linear) and
+masks/<stem>.png for every shot. Frames that cannot be used are not fatal: each frame's
+report carries its flags (unreadable, black, saturated, clipped highlights, implausible
+mask), so an unattended run finishes and says exactly which views are suspect.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from station.errors import BadInputError, ScanFolderError
+from station.process.colour import ChartNotFoundError, locate_and_fit_chart, white_balance_from_linear
+from station.process.develop import Developed, DevelopSettings, WhiteBalance, develop_raw
+from station.process.images_io import write_exr_half, write_mask_png, write_png16
+from station.process.masks import MaskCheckSettings, MaskSettings, check_masks, compute_mask
+from station.scanfolder import ManifestEntry, ScanFolder
+
+
+@dataclass(frozen=True)
+class ProcessSettings:
+    develop: DevelopSettings = DevelopSettings()
+    masks: MaskSettings = MaskSettings()
+    checks: MaskCheckSettings = MaskCheckSettings()
+    white_balance: Literal["plate", "as_shot"] = "plate"
+    use_chart: bool = True  # correct colour against a ColorChecker found in a plate
+    max_chart_delta_e: float = 6.0  # a chart fit worse than this is ignored (mis-located, too small)
+
+
+@dataclass
+class FrameReport:
+    file: str
+    kind: str
+    elevation_deg: float
+    azimuth_deg: float
+    flags: list[str] = field(default_factory=list)
+    clipped_fraction: float | None = None
+    exposure_scale: float | None = None
+    mask_area_fraction: float | None = None
+
+
+@dataclass
+class DevelopReport:
+    frames: list[FrameReport]
+    white_balance: WhiteBalance
+    colour_source: str  # "chart", or the camera matrix's source ("file", "libraw_table", "none")
+    chart_delta_e00: tuple[float, float] | None  # (before, after) mean ΔE00 on the chart, if used
+    seconds: float
+
+    @property
+    def usable_shots(self) -> list[FrameReport]:
+        bad = {"unreadable", "black", "saturated", "no_plate"}
+        return [f for f in self.frames if f.kind == "shot" and not bad.intersection(_flag_names(f.flags))]
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def _flag_names(flags: list[str]) -> set[str]:
+    return {flag.split(":", 1)[0] for flag in flags}
+
+
+def _exposure(entry: ManifestEntry) -> float:
+    return entry.exposure_s * entry.iso if entry.exposure_s > 0 and entry.iso > 0 else 0.0
+
+
+def _scan_white_balance(scan: ScanFolder, plates: list[ManifestEntry], settings: ProcessSettings) -> WhiteBalance:
+    """Median of the per-plate backdrop balances: one balance for the whole scan, so colours agree."""
+    camera = DevelopSettings(demosaic="LINEAR", output_space="camera", max_width=640)
+    gains = []
+    for entry in plates:
+        path = scan.resolve_inside(entry.file)
+        unit = develop_raw(path, camera, WhiteBalance((1.0, 1.0, 1.0), source="unit"))
+        gains.append(white_balance_from_linear(unit.linear, source=entry.file).gains)
+    median = np.median(np.array(gains), axis=0)
+    return WhiteBalance((float(median[0]), 1.0, float(median[2])), source=f"median of {len(gains)} backdrop plates")
+
+
+def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()) -> DevelopReport:
+    """Develop and mask every shot of `scan`; see the module docstring for what is written."""
+    start = time.perf_counter()
+    entries = scan.read_manifest()
+    if not entries:
+        raise ScanFolderError(f"{scan.manifest_path}: no frames listed")
+    stems = [Path(e.file).stem for e in entries]
+    if len(set(stems)) != len(stems):
+        raise ScanFolderError(f"{scan.manifest_path}: two frames share a file stem; outputs would collide")
+    reports = {e.file: FrameReport(e.file, e.kind, e.elevation_deg, e.azimuth_deg) for e in entries}
+    readable = []
+    for entry in entries:
+        if not scan.verify_entry(entry):
+            reports[entry.file].flags.append("unreadable: missing, or bytes differ from the manifest checksum")
+        else:
+            readable.append(entry)
+    plates = [e for e in readable if e.kind == "plate"]
+    if not plates:
+        raise ScanFolderError(f"{scan.root}: no readable plate frame; masks need one empty plate per elevation")
+    wb = _scan_white_balance(scan, plates, settings) if settings.white_balance == "plate" else None
+    exposures = [_exposure(e) for e in readable if _exposure(e) > 0]
+    reference = float(np.median(exposures)) if exposures else 0.0
+
+    def develop(entry: ManifestEntry) -> Developed | None:
+        report = reports[entry.file]
+        try:
+            frame = develop_raw(scan.resolve_inside(entry.file), settings.develop, wb)
+        except BadInputError as exc:
+            report.flags.append(f"unreadable: {exc}")
+            return None
+        scale = reference / _exposure(entry) if reference > 0 and _exposure(entry) > 0 else 1.0
+        frame.linear *= np.float32(scale)
+        report.flags += frame.flags
+        report.clipped_fraction, report.exposure_scale = frame.clipped_fraction, scale
+        return frame
+
+    developed_plates = {e.elevation_deg: frame for e in plates if (frame := develop(e)) is not None}
+    if not developed_plates:
+        raise ScanFolderError(f"{scan.root}: no plate frame could be developed")
+    correction, colour_source, chart_de = None, next(iter(developed_plates.values())).matrix_source, None
+    if settings.use_chart:
+        for plate in developed_plates.values():
+            try:
+                fit = locate_and_fit_chart(plate.linear)
+            except ChartNotFoundError:
+                continue
+            if fit.delta_e_after <= settings.max_chart_delta_e and fit.delta_e_after < fit.delta_e_before:
+                correction, colour_source = fit.matrix.astype(np.float32), "chart"
+                chart_de = (fit.delta_e_before, fit.delta_e_after)
+                break
+
+    rings: dict[float, list[tuple[float, str, np.ndarray]]] = {}
+    for entry in (e for e in readable if e.kind == "shot"):
+        frame = develop(entry)
+        if frame is None:
+            continue
+        report = reports[entry.file]
+        elevations = np.array(list(developed_plates))
+        plate_elev = float(elevations[np.argmin(np.abs(elevations - entry.elevation_deg))])
+        plate = developed_plates[plate_elev]
+        if abs(plate_elev - entry.elevation_deg) > 1e-3:
+            report.flags.append(f"no_plate: none at {entry.elevation_deg} deg, masked against {plate_elev} deg")
+        linear, plate_linear = frame.linear, plate.linear
+        if correction is not None:
+            linear = np.clip(linear @ correction.T, 0.0, None)
+            plate_linear = np.clip(plate_linear @ correction.T, 0.0, None)
+        stem = Path(entry.file).stem
+        write_png16(scan.images_dir / f"{stem}.png", linear)
+        write_exr_half(scan.images_linear_dir / f"{stem}.exr", linear)
+        mask = compute_mask(linear, plate_linear, settings.masks)
+        write_mask_png(scan.masks_dir / f"{stem}.png", mask)
+        report.mask_area_fraction = float(mask.mean())
+        rings.setdefault(entry.elevation_deg, []).append((entry.azimuth_deg, entry.file, mask))
+
+    for ring in rings.values():
+        ring.sort(key=lambda item: item[0])
+        for check in check_masks([m for _, _, m in ring], [f for _, f, _ in ring], settings.checks):
+            reports[check.name].flags += [f"mask: {reason}" for reason in check.reasons]
+    used_wb = wb or WhiteBalance((1.0, 1.0, 1.0), source="as shot, per frame")
+    return DevelopReport(
+        frames=[reports[e.file] for e in entries],
+        white_balance=used_wb,
+        colour_source=colour_source,
+        chart_delta_e00=chart_de,
+        seconds=time.perf_counter() - start,
+    )

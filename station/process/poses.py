@@ -1,0 +1,280 @@
+"""Posing a scan: rig poses held fixed + triangulation, a prior-guided mapping cross-check, or pure SfM.
+
+With a rig model the poses are known; SfM only adds a metric point cloud (triangulated with
+the cameras fixed) and a check that the scan matches the rig (a free mapping run, aligned to
+the rig, must agree). Without one (scans from elsewhere) incremental SfM poses the views and
+the ring of cameras fixes up, origin and, when scan.json has a rig, scale. Too few points (a
+textureless stone) falls back to a visual hull carved from the masks, with a flag.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from PIL import Image
+
+from station.errors import ScanFolderError, StationError
+from station.process import sfm
+from station.process.rig_model import RigModel, apply_similarity, rotation_angle_deg, umeyama
+from station.process.transforms import PosedFrame, Transforms, write_transforms
+from station.process.visual_hull import carve, convergence_point
+from station.rig_geometry import RigGeometry
+from station.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_json, atomic_write_with
+
+
+class PosingError(StationError):
+    """The scan cannot be posed (no usable images, SfM registered too few views)."""
+
+    exit_code = 2
+
+
+@dataclass(frozen=True)
+class PoseSettings:
+    sfm: sfm.SfmSettings = field(default_factory=sfm.SfmSettings)
+    min_points: int = 200  # fewer triangulated points than this: carve a visual hull instead
+    cross_check: bool = True
+    drift_rotation_deg: float = 0.5
+    drift_centre_fraction: float = 0.01  # of the orbit radius
+    hull_resolution: int = 96
+
+
+@dataclass
+class PoseReport:
+    method: str  # "rig" or "sfm"
+    views: int
+    planned_views: int
+    registered: list[str]
+    unregistered: list[str]
+    points: int
+    init_cloud: str  # "sfm" or "visual_hull"
+    reprojection_error_px: float
+    mean_track_length: float
+    cross_check: dict = field(default_factory=dict)
+    flags: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class FrameRef:
+    name: str  # file name inside images/
+    mask_name: str | None  # file name inside masks/, when a mask exists
+    elevation_deg: float | None
+    azimuth_deg: float | None
+
+
+def collect_frames(scan: ScanFolder) -> tuple[list[FrameRef], int]:
+    """The developed images to pose (from the manifest's shots when present) and how many were planned."""
+    shots = [e for e in scan.read_manifest() if e.kind == "shot"]
+    if shots:
+        refs = []
+        for entry in shots:
+            name = Path(entry.file).stem + ".png"
+            if (scan.images_dir / name).is_file():
+                mask = name if (scan.masks_dir / name).is_file() else None
+                refs.append(FrameRef(name, mask, entry.elevation_deg, entry.azimuth_deg))
+        return refs, len(shots)
+    if not scan.images_dir.is_dir():
+        raise ScanFolderError(f"{scan.images_dir}: missing (develop the scan first)")
+    names = sorted(p.name for p in scan.images_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    refs = [FrameRef(n, n if (scan.masks_dir / n).is_file() else None, None, None) for n in names]
+    return refs, len(refs)
+
+
+def _image_size(scan: ScanFolder, refs: list[FrameRef]) -> tuple[int, int]:
+    sizes = set()
+    for ref in refs:
+        try:
+            with Image.open(scan.resolve_inside(f"images/{ref.name}")) as img:
+                sizes.add(img.size)
+        except OSError as exc:
+            raise ScanFolderError(f"{scan.images_dir / ref.name}: unreadable image ({exc})") from exc
+    if len(sizes) != 1:
+        raise ScanFolderError(f"{scan.images_dir}: images differ in size {sorted(sizes)}")
+    return sizes.pop()
+
+
+def _load_mask(scan: ScanFolder, name: str) -> np.ndarray:
+    with Image.open(scan.resolve_inside(f"masks/{name}")) as img:
+        return np.asarray(img.convert("L")) > 127  # [H, W]
+
+
+def _scan_rig(scan: ScanFolder) -> RigGeometry | None:
+    if not scan.scan_json.exists():
+        return None
+    rig = scan.read_scan_json().get("rig")
+    return RigGeometry.from_dict(rig) if isinstance(rig, dict) else None
+
+
+def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) -> PoseReport:
+    """Pose every developed image of `scan` and write poses/ (COLMAP model, transforms.json, cloud, report)."""
+    started = time.monotonic()
+    refs, planned = collect_frames(scan)
+    if len(refs) < 3:
+        raise PosingError(f"{scan.images_dir}: {len(refs)} usable images, at least 3 are needed to pose")
+    width, height = _image_size(scan, refs)
+    flags = []
+    if len(refs) < planned:
+        flags.append(f"fewer images than planned: {len(refs)} of {planned}")
+    masks = {r.name: _load_mask(scan, r.mask_name) for r in refs if r.mask_name is not None}
+    if len(masks) < len(refs):
+        flags.append(f"{len(refs) - len(masks)} images have no mask: features may land on the backdrop")
+    use_rig = rig is not None and all(r.elevation_deg is not None for r in refs)
+    if rig is not None and not use_rig:
+        flags.append("rig model given but the scan has no manifest angles: pure SfM used")
+
+    work = Path(tempfile.mkdtemp(prefix="station-poses-"))
+    try:
+        database = work / "database.db"
+        mask_dir = None
+        if masks:
+            mask_dir = work / "masks"
+            sfm.write_colmap_masks(masks, mask_dir, settings.sfm.mask_erode_px)
+        names = [r.name for r in refs]
+        if use_rig:
+            intr = rig.intrinsics.scaled(width, height)
+            rig_poses = {r.name: rig.camera_to_world(r.elevation_deg, r.azimuth_deg) for r in refs}
+            sfm.extract_and_match(database, scan.images_dir, names, mask_dir, intr, settings.sfm)
+            rec = sfm.reconstruction_from_poses(database, rig_poses)
+            rec = sfm.triangulate_fixed(rec, database, scan.images_dir, work / "triangulated", settings.sfm)
+            poses = rig_poses
+            report = PoseReport("rig", len(refs), planned, sorted(poses), [], 0, "sfm", 0.0, 0.0, flags=flags)
+            if settings.cross_check:
+                elevation_of = {r.name: r.elevation_deg for r in refs}
+                report.cross_check = _cross_check(database, scan.images_dir, work, rig_poses, elevation_of, rig,
+                                                  settings)
+                flags.extend(report.cross_check.pop("flags"))
+        else:
+            scan_rig = _scan_rig(scan)
+            intr = None
+            if scan_rig is not None:
+                k = scan_rig.scaled(width, height).intrinsics()
+                intr = sfm.Intrinsics(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+            sfm.extract_and_match(database, scan.images_dir, names, mask_dir, intr, settings.sfm)
+            rec = sfm.map_incremental(database, scan.images_dir, work / "mapped", settings.sfm, False, intr is not None)
+            if rec is None or rec.num_reg_images() < 3:
+                raise PosingError(f"{scan.root}: SfM registered {0 if rec is None else rec.num_reg_images()} views")
+            rec, scaled = _turntable_gauge(rec, scan_rig.orbit_radius_m if scan_rig else None)
+            if not scaled:
+                flags.append("no rig in scan.json: scale is SfM units, not metres")
+            intr = _intrinsics_of(rec, width, height)
+            poses = sfm.registered_poses(rec)
+            missing = [n for n in names if n not in poses]
+            if missing:
+                flags.append(f"SfM registered {len(poses)} of {len(names)} views; dropped: {', '.join(missing)}")
+            report = PoseReport("sfm", len(refs), planned, sorted(poses), missing, 0, "sfm", 0.0, 0.0, flags=flags)
+        report.reprojection_error_px = float(rec.compute_mean_reprojection_error()) if rec.num_points3D() else 0.0
+        report.mean_track_length = float(rec.compute_mean_track_length()) if rec.num_points3D() else 0.0
+        xyz, rgb = sfm.points_and_colours(rec)
+        if len(xyz) < settings.min_points:
+            if len(masks) == len(refs):
+                posed = [r for r in refs if r.name in poses]
+                images = [np.asarray(Image.open(scan.images_dir / r.name).convert("RGB")) for r in posed]
+                xyz, rgb = carve([poses[r.name] for r in posed], [masks[r.name] for r in posed], images, intr,
+                                 settings.hull_resolution)
+                report.init_cloud = "visual_hull"
+                flags.append(f"only {rec.num_points3D()} SfM points (textureless?): starting cloud carved from masks")
+            else:
+                flags.append(f"only {rec.num_points3D()} SfM points and no masks to carve a hull: sparse start")
+        report.points = len(xyz)
+        _write_outputs(scan, rec, refs, poses, intr, xyz, rgb, work)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    report.seconds = time.monotonic() - started
+    atomic_write_json(scan.poses_dir / "report.json", report.to_dict())
+    return report
+
+
+def _cross_check(database: Path, image_dir: Path, work: Path, rig_poses: dict[str, np.ndarray],
+                 elevation_of: dict[str, float], rig: RigModel, settings: PoseSettings) -> dict:
+    """Free mapping pulled towards the rig centres; the scan drifted if its poses disagree with the rig."""
+    sfm.write_position_priors(database, {n: p[:3, 3] for n, p in rig_poses.items()})
+    rec = sfm.map_incremental(database, image_dir, work / "cross_check", settings.sfm, True, True)
+    mapped = sfm.registered_poses(rec) if rec is not None else {}
+    out: dict = {"registered": len(mapped), "flags": []}
+    missing = sorted(set(rig_poses) - set(mapped))
+    if missing:
+        out["flags"].append(f"cross-check mapping registered {len(mapped)} of {len(rig_poses)} views; "
+                            f"not: {', '.join(missing)}")
+    if len(mapped) < 3:
+        out["flags"].append("cross-check mapping failed: poses rest on the rig model alone")
+        return out
+    names = sorted(mapped)
+    s, r, t = umeyama(np.array([mapped[n][:3, 3] for n in names]), np.array([rig_poses[n][:3, 3] for n in names]))
+    aligned = {n: apply_similarity(mapped[n], s, r, t) for n in names}
+    radius = rig.orbit_radius()
+    rot = np.array([rotation_angle_deg(aligned[n][:3, :3], rig_poses[n][:3, :3]) for n in names])
+    ctr = np.array([np.linalg.norm(aligned[n][:3, 3] - rig_poses[n][:3, 3]) / radius for n in names])
+    # A slipped arm or a wobbling plate moves a whole elevation ring; one loose view is mapping noise.
+    drifted = []
+    for e in sorted({elevation_of[n] for n in names}):
+        ring = [i for i, n in enumerate(names) if elevation_of[n] == e]
+        if np.median(rot[ring]) > settings.drift_rotation_deg or np.median(ctr[ring]) > settings.drift_centre_fraction:
+            drifted.append(e)
+    out.update(rotation_median_deg=float(np.median(rot)), rotation_max_deg=float(rot.max()),
+               centre_median_fraction=float(np.median(ctr)), centre_max_fraction=float(ctr.max()),
+               drifted_elevations=drifted)
+    if drifted:
+        out["flags"].append(f"elevations {drifted} disagree with the rig model (drift): recalibrate the rig")
+    return out
+
+
+def _intrinsics_of(rec: pycolmap.Reconstruction, width: int, height: int) -> sfm.Intrinsics:
+    camera = next(iter(rec.cameras.values()))
+    k = camera.calibration_matrix()
+    return sfm.Intrinsics(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+
+
+def _turntable_gauge(rec: pycolmap.Reconstruction, radius_m: float | None) -> tuple[pycolmap.Reconstruction, bool]:
+    """Put a free SfM model into a turntable-like frame: z along the camera ring's normal, origin where
+    the cameras look, scale so the ring radius is `radius_m` (when known)."""
+    poses = list(sfm.registered_poses(rec).values())
+    centres = np.array([p[:3, 3] for p in poses])
+    target = convergence_point(poses)
+    _, _, vt = np.linalg.svd(centres - centres.mean(0))
+    up = vt[2] if vt[2] @ (centres.mean(0) - target) >= 0 else -vt[2]  # cameras sit above what they look at
+    x = np.cross(np.array([0.0, 1.0, 0.0]) if abs(up[1]) < 0.9 else np.array([1.0, 0.0, 0.0]), up)
+    x /= np.linalg.norm(x)
+    rot = np.stack([x, np.cross(up, x), up])
+    rel = centres - target
+    radius = float(np.mean(np.linalg.norm(rel - np.outer(rel @ up, up), axis=1)))
+    scale = radius_m / radius if radius_m else 1.0
+    rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rot), -scale * rot @ target))
+    return rec, radius_m is not None
+
+
+def _write_outputs(scan: ScanFolder, rec: pycolmap.Reconstruction, refs: list[FrameRef],
+                   poses: dict[str, np.ndarray], intr: sfm.Intrinsics, xyz: np.ndarray, rgb: np.ndarray,
+                   work: Path) -> None:
+    out = work / "colmap_out"
+    out.mkdir()
+    rec.write_binary(str(out))
+    for path in sorted(out.iterdir()):
+        atomic_write_bytes(scan.poses_dir / "colmap" / path.name, path.read_bytes())
+    atomic_write_with(scan.poses_dir / "points3d.ply", lambda tmp: write_point_ply(tmp, xyz, rgb))
+    frames = [PosedFrame(f"images/{r.name}", poses[r.name], f"masks/{r.mask_name}" if r.mask_name else None)
+              for r in refs if r.name in poses]
+    write_transforms(scan, Transforms(intr, frames, "poses/points3d.ply"))
+
+
+def write_point_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
+    """Binary little-endian PLY with float xyz and uchar colours (what nerfstudio's ply init reads)."""
+    vertex = np.zeros(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                       ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    vertex["x"], vertex["y"], vertex["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    vertex["red"], vertex["green"], vertex["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(xyz)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    with open(path, "wb") as handle:
+        handle.write(header.encode("ascii"))
+        handle.write(vertex.tobytes())

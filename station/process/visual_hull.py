@@ -1,0 +1,74 @@
+"""Visual hull: a starting cloud carved from the masks when SfM finds too few points.
+
+A textureless stone gives SIFT almost nothing to match, but its silhouettes are still sharp
+and the rig poses are still exact, so carving a voxel grid with every mask gives a cloud that
+hugs the stone (from outside: concavities are filled) for the splats to start from.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from station.process.sfm import Intrinsics
+
+
+def convergence_point(c2ws: list[np.ndarray]) -> np.ndarray:
+    """Least-squares point closest to every optical axis: where the cameras look."""
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c2w in c2ws:
+        d = c2w[:3, 2] / np.linalg.norm(c2w[:3, 2])
+        proj = np.eye(3) - np.outer(d, d)
+        a += proj
+        b += proj @ c2w[:3, 3]
+    return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+def view_bounds(c2ws: list[np.ndarray], intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """An axis-aligned box that holds everything every camera can see around the convergence point."""
+    centre = convergence_point(c2ws)
+    dist = float(np.median([np.linalg.norm(c[:3, 3] - centre) for c in c2ws]))
+    half = dist * 0.5 * max(intr.width / intr.fx, intr.height / intr.fy)
+    return centre - half, centre + half
+
+
+def carve(
+    c2ws: list[np.ndarray],
+    masks: list[np.ndarray],
+    images: list[np.ndarray],
+    intr: Intrinsics,
+    resolution: int = 96,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Surface voxels of the visual hull [N, 3] and their mean colour over the views [N, 3] uint8."""
+    lo, hi = view_bounds(c2ws, intr)
+    axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # [R^3, 3]
+    inside = np.ones(len(grid), dtype=bool)
+    seen_count = np.zeros(len(grid), dtype=np.int64)
+    colour_sum = np.zeros((len(grid), 3))
+    colour_n = np.zeros(len(grid))
+    k = intr.matrix()
+    for c2w, mask, image in zip(c2ws, masks, images):
+        w2c = np.linalg.inv(c2w)
+        cam = grid @ w2c[:3, :3].T + w2c[:3, 3]  # [R^3, 3]
+        front = cam[:, 2] > 1e-6
+        uvw = cam @ k.T
+        u = np.floor(uvw[:, 0] / np.where(front, uvw[:, 2], 1.0)).astype(np.int64)
+        v = np.floor(uvw[:, 1] / np.where(front, uvw[:, 2], 1.0)).astype(np.int64)
+        seen = front & (u >= 0) & (u < mask.shape[1]) & (v >= 0) & (v < mask.shape[0])
+        hit = np.zeros(len(grid), dtype=bool)
+        hit[seen] = mask[v[seen], u[seen]]
+        inside &= hit | ~seen  # a voxel outside the frame is not evidence against it
+        seen_count += seen
+        colour_sum[hit] += image[v[hit], u[hit], :3]
+        colour_n[hit] += 1
+    inside &= seen_count >= max(2, len(c2ws) // 2)  # ...but a voxel few views see is not evidence for it
+    occ = inside.reshape((resolution,) * 3)
+    padded = np.pad(occ, 1, constant_values=False)
+    interior = occ.copy()
+    for axis in range(3):
+        for shift in (-1, 1):
+            interior &= np.roll(padded, shift, axis=axis)[1:-1, 1:-1, 1:-1]
+    surface = (occ & ~interior).reshape(-1)
+    colours = colour_sum[surface] / np.maximum(colour_n[surface], 1)[:, None]
+    return grid[surface], np.clip(colours, 0, 255).astype(np.uint8)

@@ -1,0 +1,165 @@
+"""GRBL line protocol: send one line, wait for its `ok`/`error:N`, classify whatever else arrives.
+
+Replies end with `\\r\\n`; between a line and its reply the firmware may interleave status reports,
+`[...]` info lines, `ALARM:N` and, if the board reset itself, its banner. Each of those is turned
+into data or a typed exception here, so the driver above only sees outcomes.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from station.errors import DeviceTimeoutError
+from station.turntable.errors import GarbledStatusError, GrblAlarm, GrblError, NotGrblError, UnexpectedResetError
+from station.turntable.link import SerialLine
+from station.turntable.status import MachineStatus, parse_status
+
+log = logging.getLogger(__name__)
+BANNER = re.compile(r"^(Grbl|GrblHAL) (\d+\.\d+\w*) \[.*\]$")
+_CODE = re.compile(r"^(error|ALARM):(\d+)$")
+
+
+@dataclass(frozen=True)
+class FirmwareInfo:
+    """Who answered: banner flavour and version, `$I` build info, `$$` settings."""
+
+    flavour: str  # "Grbl" or "GrblHAL"
+    version: str  # banner version, e.g. "1.1h"
+    build: str  # [VER:...] text
+    options: str  # [OPT:...] text
+    settings: dict[int, float]
+
+
+class GrblProtocol:
+    """Reply handling over one SerialLine; `on_status` sees every well-formed status report."""
+
+    def __init__(self, line: SerialLine, on_status: Callable[[MachineStatus], None]) -> None:
+        self.line = line
+        self.port = line.port
+        self._on_status = on_status
+        self.garbled = 0  # garbled status reports skipped while waiting (counted, never trusted)
+
+    def classify(self, text: str) -> tuple[str, object]:
+        """Sort one received line: ok / error / status / info / noise; ALARM and banner raise."""
+        text = text.strip()
+        if text == "ok":
+            return "ok", None
+        code = _CODE.match(text)
+        if code and code.group(1) == "error":
+            return "error", int(code.group(2))
+        if code:
+            raise GrblAlarm(int(code.group(2)), self.port)
+        if BANNER.match(text):
+            raise UnexpectedResetError(f"turntable on {self.port} reset itself mid-session (banner {text!r})")
+        if text.startswith("<"):
+            try:
+                status = parse_status(text)
+            except GarbledStatusError:
+                self.garbled += 1
+                return "garbled", text
+            self._on_status(status)
+            return "status", status
+        if text.startswith("[") and text.endswith("]"):
+            return "info", text
+        if text:
+            log.warning("ignoring unexpected line from %s: %r", self.port, text)
+        return "noise", text
+
+    def await_reply(self, sent: str, deadline: float, *, poll_s: float | None = None,
+                    extend: Callable[[MachineStatus], float | None] | None = None) -> list[str] | None:
+        """Info lines of the reply to `sent`, or None if no reply came by `deadline`.
+
+        With `poll_s`, a `?` goes out whenever the line is quiet that long (status fallback, <= 5 Hz);
+        `extend(status)` may push the deadline back (a feed hold is the operator's time, not a fault).
+        """
+        info: list[str] = []
+        next_poll = time.monotonic() + poll_s if poll_s else float("inf")
+        while True:
+            text = self.line.read_line(min(deadline, next_poll))
+            now = time.monotonic()
+            if text is None:
+                if now >= deadline:
+                    return None
+                self.line.write(b"?")
+                next_poll = now + poll_s
+                continue
+            kind, value = self.classify(text)
+            if kind == "ok":
+                return info
+            if kind == "error":
+                raise GrblError(int(value), sent, self.port)
+            if kind == "info":
+                info.append(str(value))
+            if kind == "status" and extend is not None:
+                later = extend(value)
+                deadline = max(deadline, later) if later is not None else deadline
+
+    def command(self, text: str, timeout_s: float) -> list[str]:
+        """Send one line and return its info lines; a missing reply is a DeviceTimeoutError."""
+        self.line.write(text.encode("ascii") + b"\n")
+        info = self.await_reply(text, time.monotonic() + timeout_s)
+        if info is None:
+            raise DeviceTimeoutError(f"turntable on {self.port} did not answer {text!r} within {timeout_s:g} s")
+        return info
+
+    def query_status(self, timeout_s: float) -> MachineStatus:
+        """Send `?` and parse its report; a garbled report is refused and asked for once more."""
+        garbled = ""
+        for _attempt in (1, 2):
+            self.line.write(b"?")
+            deadline = time.monotonic() + timeout_s
+            while True:
+                text = self.line.read_line(deadline)
+                if text is None:
+                    raise DeviceTimeoutError(f"turntable on {self.port} sent no status report within {timeout_s:g} s")
+                kind, value = self.classify(text)
+                if kind == "status":
+                    return value  # type: ignore[return-value]
+                if kind == "garbled":
+                    garbled = str(value)
+                    break
+        raise GarbledStatusError(f"turntable on {self.port} sent two garbled status reports in a row, last {garbled!r}")
+
+    def handshake(self, timeout_s: float) -> tuple[str, str]:
+        """Soft-reset (0x18) and wait for the banner; returns (flavour, version)."""
+        self.line.discard_input()
+        self.line.heard.clear()
+        self.line.write(b"\x18")
+        deadline = time.monotonic() + timeout_s
+        while True:
+            text = self.line.read_line(deadline)
+            if text is None:
+                heard = bytes(self.line.heard).decode("ascii", errors="replace").strip()
+                if heard:
+                    raise NotGrblError(self.port, heard[:80])
+                raise DeviceTimeoutError(f"no answer from {self.port} within {timeout_s:g} s of a reset; "
+                                         "is a GRBL turntable connected and powered?")
+            match = BANNER.match(text.strip())
+            if match:
+                return match.group(1), match.group(2)
+
+    def identify(self, flavour: str, version: str, timeout_s: float) -> FirmwareInfo:
+        """`$I` build info and `$$` settings."""
+        info = self.command("$I", timeout_s)
+        build = next((s[5:-1] for s in info if s.startswith("[VER:")), "")
+        options = next((s[5:-1] for s in info if s.startswith("[OPT:")), "")
+        settings: dict[int, float] = {}
+        self.line.write(b"$$\n")
+        deadline = time.monotonic() + timeout_s
+        while True:
+            text = self.line.read_line(deadline)
+            if text is None:
+                raise DeviceTimeoutError(f"turntable on {self.port} did not finish listing $$ within {timeout_s:g} s")
+            match = re.match(r"^\$(\d+)=([-+0-9.]+)", text.strip())
+            if match:
+                settings[int(match.group(1))] = float(match.group(2))
+                continue
+            kind, value = self.classify(text)
+            if kind == "ok":
+                return FirmwareInfo(flavour, version, build, options, settings)
+            if kind == "error":
+                raise GrblError(int(value), "$$", self.port)

@@ -1,0 +1,203 @@
+"""The GRBL emulator reproduces the firmware behaviour recorded in docs/rig.md, byte for byte."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import pytest
+
+from sim.grbl_firmware import GrblFirmware
+from sim.grbl_motion import move_segment
+from station.turntable.errors import GarbledStatusError
+from station.turntable.status import parse_status
+
+pytestmark = pytest.mark.timeout(60)
+
+
+class ManualClock:
+    """Deterministic time for the emulator: tests step it instead of sleeping."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def board(**kwargs: object) -> tuple[GrblFirmware, ManualClock]:
+    clock = ManualClock()
+    fw = GrblFirmware(clock=clock, **kwargs)
+    fw.read()  # the power-on banner
+    return fw, clock
+
+
+def send(fw: GrblFirmware, data: bytes) -> str:
+    fw.write(data)
+    return fw.read().decode()
+
+
+def test_power_on_prints_the_grbl_banner_and_grblhal_flavour_its_own():
+    assert GrblFirmware().read() == b"\r\nGrbl 1.1h ['$' for help]\r\n"
+    assert b"GrblHAL 1.1f ['$' or '$HELP' for help]" in GrblFirmware(flavour="grblhal").read()
+
+
+def test_every_line_gets_one_ok_including_an_empty_line():
+    fw, _ = board()
+    assert send(fw, b"\n") == "ok\r\n"
+    assert send(fw, b"G90\nG21\n") == "ok\r\nok\r\n"
+    assert send(fw, b"$I\n") == "[VER:1.1h.20190830:]\r\n[OPT:V,15,128]\r\nok\r\n"
+
+
+@pytest.mark.parametrize("line, reply", [
+    (b"G7\n", "error:20"),  # unsupported G-code
+    (b"G1X10\n", "error:22"),  # G1 with no feed ever set
+    (b"X10F\n", "error:2"),  # bad number
+    (b"G1X1X2F100\n", "error:25"),  # repeated word
+    (b"G0G1X1\n", "error:21"),  # two motion words
+    (b"$20=1\n", "error:10"),  # soft limits without homing
+    (b"$Q\n", "error:3"),  # unknown $ command
+    (b"G1X" + b"1" * 90 + b"F100\n", "error:11"),  # line overflow
+])
+def test_bad_lines_get_the_error_codes_real_firmware_sends(line, reply):
+    fw, _ = board()
+    assert send(fw, line) == f"{reply}\r\n"
+
+
+def test_homing_while_moving_is_error_8_and_gcode_in_alarm_is_error_9():
+    fw, clock = board(homing=True)
+    assert fw.state == "Alarm"
+    assert send(fw, b"G1X10F100\n") == "error:9\r\n"
+    send(fw, b"$X\n")
+    send(fw, b"G1X90F600\n")
+    assert send(fw, b"$H\n") == "error:8\r\n"
+
+
+def test_jog_beyond_travel_is_error_15_with_soft_limits():
+    fw, _ = board(homing=True, soft_limits=True)
+    send(fw, b"$X\n")
+    assert send(fw, b"$J=G90Y500F100\n") == "error:15\r\n"
+    assert send(fw, b"$J=G90Y5F100\n") == "ok\r\n"
+
+
+def test_motion_takes_the_trapezoid_time_scaled_and_g4_p0_answers_when_done():
+    fw, clock = board(time_scale=0.5)
+    assert send(fw, b"G1X90Y10F1800\n") == "ok\r\n"
+    assert send(fw, b"G4P0\n") == ""  # no ok while the move runs
+    seg = move_segment(0.0, (0.0, 0.0, 0.0), (90.0, 10.0, 0.0), (3600.0, 1800.0, 500.0), (180.0, 90.0, 10.0), 1800.0)
+    clock.now += 0.5 * seg.duration - 1e-3
+    assert fw.read() == b""
+    assert fw.state == "Run"
+    clock.now += 2e-3
+    assert fw.read() == b"ok\r\n"
+    assert fw.position() == pytest.approx((90.0, 10.0))
+    # feed 30 deg/s along the path; X's 180 deg/s^2 limits the path acceleration to 180 * |d| / dx
+    length = math.hypot(90.0, 10.0)
+    accel = 180.0 * length / 90.0
+    assert seg.duration == pytest.approx(30.0 / accel + length / 30.0)
+
+
+def test_position_is_readable_from_another_thread_during_motion():
+    fw = GrblFirmware(time_scale=0.02)
+    fw.write(b"G1X180F3600\n")
+    seen: list[float] = []
+    reader = threading.Thread(target=lambda: [seen.append(fw.position()[0]) or time.sleep(0.005) for _ in range(20)])
+    reader.start()
+    reader.join()
+    assert seen == sorted(seen) and 0.0 < max(seen) <= 180.0
+
+
+def test_feed_hold_decelerates_then_holds_and_resume_is_ignored_until_hold_0():
+    fw, clock = board()
+    send(fw, b"G1X360F3600\n")
+    clock.now += 1.0
+    assert parse_status(send(fw, b"!?")).state == "Hold"
+    assert parse_status(send(fw, b"?")).substate == 1
+    send(fw, b"~")  # ignored during Hold:1
+    clock.now += 0.2
+    assert parse_status(send(fw, b"?")).substate == 1
+    clock.now += 1.0
+    held = parse_status(send(fw, b"?"))
+    assert (held.state, held.substate) == ("Hold", 0)
+    send(fw, b"~")
+    assert parse_status(send(fw, b"?")).state == "Run"
+    clock.now += 20.0
+    assert fw.position()[0] == pytest.approx(360.0)
+
+
+def test_reset_during_motion_gives_alarm_3_banner_and_unlock_message():
+    fw, clock = board()
+    send(fw, b"G1X90F600\n")
+    clock.now += 1.0
+    assert send(fw, b"\x18") == "ALARM:3\r\n\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n"
+    assert send(fw, b"G1X0F600\n") == "error:9\r\n"
+    assert send(fw, b"$X\n") == "[MSG:Caution: Unlocked]\r\nok\r\n"
+    assert 0.0 < fw.position()[0] < 90.0  # it stopped where it was
+
+
+def test_soft_limit_alarm_2_ignores_everything_until_reset():
+    fw, clock = board(homing=True, soft_limits=True)
+    send(fw, b"$X\n")
+    assert send(fw, b"G1Y500F100\n") == "ALARM:2\r\n[MSG:Reset to continue]\r\n"
+    assert send(fw, b"$X\n?") == ""
+    assert send(fw, b"\x18") == "\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n"
+
+
+def test_homing_enabled_boots_into_alarm_and_homing_answers_ok_when_done():
+    clock = ManualClock()
+    fw = GrblFirmware(homing=True, clock=clock)
+    assert fw.read().endswith(b"[MSG:'$H'|'$X' to unlock]\r\n")
+    assert send(fw, b"$H\n") == ""
+    assert fw.state == "Home"
+    clock.now += 5.0
+    assert fw.read() == b"ok\r\n"
+    assert fw.state == "Idle"
+
+
+def test_status_reports_parse_by_key_and_grblhal_puts_bf_before_fs():
+    fw, _ = board(flavour="grblhal")
+    line = send(fw, b"?").strip()
+    assert line.index("|Bf:") < line.index("|FS:")
+    report = parse_status(line)
+    assert report.state == "Idle" and report.buffer == (35, 1023) and report.mpos == (0.0, 0.0, 0.0)
+
+
+def test_garble_fault_makes_exactly_the_next_n_reports_unparseable():
+    fw, _ = board()
+    fw.faults.garble_status = 5
+    for _ in range(5):
+        with pytest.raises(GarbledStatusError):
+            parse_status(send(fw, b"?").strip())
+    assert parse_status(send(fw, b"?").strip()).state == "Idle"
+
+
+def test_dropped_ok_fault_swallows_exactly_one_reply():
+    fw, _ = board()
+    fw.faults.drop_ok = 1
+    assert send(fw, b"G90\n") == ""
+    assert send(fw, b"G90\n") == "ok\r\n"
+
+
+def test_power_cycle_zeroes_the_counter_but_not_the_physical_stage():
+    fw, clock = board()
+    send(fw, b"G1X45F600\n")
+    clock.now += 10.0
+    fw.power_cycle()
+    assert fw.read() == b"\r\nGrbl 1.1h ['$' for help]\r\n"
+    assert parse_status(send(fw, b"?")).mpos == (0.0, 0.0, 0.0)
+    assert fw.position() == pytest.approx((45.0, 0.0))
+
+
+def test_vanish_fault_unplugs_halfway_through_the_move_and_replugs_later():
+    fw, clock = board()
+    fw.faults.vanish_on_move = 1
+    fw.faults.replug_after_s = 1.0
+    send(fw, b"G1X90F600\n")
+    clock.now += 5.0  # the move lasts 9.06 s: 10 deg/s after 0.06 s of acceleration
+    assert fw.read() == b""
+    assert not fw.plugged and fw.generation == 1
+    assert math.isclose(fw.position()[0], 45.0, abs_tol=1e-6)
+    clock.now += 100.0
+    fw.read()
+    assert fw.plugged and fw.state == "Idle"

@@ -1,0 +1,256 @@
+"""Posing: rig model, rig-fixed triangulation with a mapping cross-check, pure SfM, hard cases."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+from scipy.ndimage import map_coordinates
+from scipy.spatial import cKDTree
+
+from station.errors import BadInputError
+from station.process.poses import PoseSettings, PosingError, pose_scan
+from station.process.rig_model import (
+    PosedView, RigModel, apply_similarity, axis_rotation, calibrate_rig, rotation_angle_deg, umeyama,
+)
+from station.process.sfm import Intrinsics
+from station.process.transforms import read_transforms
+from station.rig_geometry import RigGeometry, camera_to_turntable, look_at_c2w
+from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_json
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+TEMPLE = SHARED / "multiview" / "templeSparseRing"
+RIG = RigGeometry()
+ELEVATIONS = (15.0, 40.0)
+
+
+def stone_mesh() -> trimesh.Trimesh:
+    """A lumpy ellipsoid about 10 cm across resting on the plate (z >= 0)."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    v = sphere.vertices
+    bump = 1 + 0.15 * np.sin(3 * v[:, 0] + 1.0) * np.cos(2 * v[:, 1] + 2.0) + 0.08 * np.sin(5 * v[:, 2])
+    v = v * bump[:, None] * np.array([0.05, 0.04, 0.035])
+    v[:, 2] -= v[:, 2].min()
+    return trimesh.Trimesh(v, sphere.faces)
+
+
+def render(mesh: trimesh.Trimesh, c2w: np.ndarray, textured: bool) -> tuple[np.ndarray, np.ndarray]:
+    """8-bit image [H, W, 3] and mask [H, W] of the stone, with a flat grey backdrop."""
+    k = RIG.intrinsics()
+    u, v = np.meshgrid(np.arange(RIG.width) + 0.5, np.arange(RIG.height) + 0.5)
+    dirs = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
+    dirs = dirs @ c2w[:3, :3].T
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origins = np.repeat(c2w[None, :3, 3], len(dirs), 0)
+    locs, ray, tri = mesh.ray.intersects_location(origins, dirs, multiple_hits=False)
+    img = np.full((len(dirs), 3), 0.25)
+    mask = np.zeros(len(dirs), dtype=bool)
+    grid = np.random.default_rng(7).uniform(0, 1, (3, 48, 48, 48))
+    albedo = np.full((len(locs), 3), 0.6)
+    if textured:
+        p = (locs + 0.08) / 0.16 * 47
+        albedo = 0.15 + 0.8 * np.stack([map_coordinates(grid[c], p.T, order=1) for c in range(3)], 1)
+    shade = 0.35 + 0.65 * np.abs((mesh.face_normals[tri] * dirs[ray]).sum(1))
+    img[ray] = albedo * shade[:, None]
+    mask[ray] = True
+    return (np.clip(img, 0, 1) * 255).astype(np.uint8).reshape(RIG.height, RIG.width, 3), mask.reshape(
+        RIG.height, RIG.width)
+
+
+def make_scan(root: Path, azimuths: int, textured: bool = True, skip: tuple[int, ...] = ()) -> ScanFolder:
+    """A developed, masked scan folder with a manifest, like `station process` sees after develop+masks."""
+    scan = ScanFolder(root)
+    mesh = stone_mesh()
+    entries = []
+    for i, e in enumerate(ELEVATIONS):
+        for j in range(azimuths):
+            a = 360.0 * j / azimuths
+            name = f"e{i}_a{j:03d}"
+            entries.append(ManifestEntry(f"raw/{name}.dng", "0" * 64, e, a, "shot", 0.03, 100, ""))
+            if i * azimuths + j in skip:
+                continue
+            img, mask = render(mesh, camera_to_turntable(e, a, RIG), textured)
+            scan.images_dir.mkdir(parents=True, exist_ok=True)
+            scan.masks_dir.mkdir(parents=True, exist_ok=True)
+            Image.fromarray(img).save(scan.images_dir / f"{name}.png")
+            Image.fromarray(mask.astype(np.uint8) * 255).save(scan.masks_dir / f"{name}.png")
+    scan.write_manifest(entries)
+    atomic_write_json(scan.scan_json, {"rig": RIG.to_dict(),
+                                       "plan": {"elevations_deg": list(ELEVATIONS), "azimuths": azimuths}})
+    return scan
+
+
+def surface_distance(points: np.ndarray) -> np.ndarray:
+    """Distance of each point to the true stone surface (dense surface sample; floor ~0.1 mm)."""
+    sample = stone_mesh().sample(400_000, seed=1) if "seed" in trimesh.Trimesh.sample.__code__.co_varnames \
+        else stone_mesh().sample(400_000)
+    return cKDTree(sample).query(points)[0]
+
+
+def read_ply_xyz(path: Path) -> np.ndarray:
+    data = path.read_bytes()
+    head, body = data.split(b"end_header\n", 1)
+    count = int(head.split(b"element vertex ")[1].split(b"\n")[0])
+    rec = np.frombuffer(body, dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)], count=count)
+    return rec["xyz"].astype(np.float64)
+
+
+@pytest.fixture(scope="module")
+def textured_scan(tmp_path_factory) -> ScanFolder:
+    return make_scan(tmp_path_factory.mktemp("textured"), azimuths=16, skip=(5,))
+
+
+def test_nominal_rig_model_reproduces_the_rig_geometry():
+    model = RigModel.nominal(RIG, list(ELEVATIONS))
+    for e in ELEVATIONS:
+        for a in (0.0, 33.0, 270.0):
+            np.testing.assert_allclose(model.camera_to_world(e, a), camera_to_turntable(e, a, RIG), atol=1e-12)
+    assert model.orbit_radius() == pytest.approx(RIG.orbit_radius_m * np.cos(np.deg2rad(ELEVATIONS)).mean())
+
+
+def test_rig_model_refuses_an_uncalibrated_elevation_and_round_trips_json(tmp_path):
+    model = RigModel.nominal(RIG, list(ELEVATIONS))
+    with pytest.raises(BadInputError, match="elevation 60"):
+        model.camera_to_world(60.0, 0.0)
+    model.save(tmp_path / "rig.json")
+    again = RigModel.load(tmp_path / "rig.json")
+    np.testing.assert_allclose(again.camera_to_world(40.0, 12.0), model.camera_to_world(40.0, 12.0))
+    (tmp_path / "bad.json").write_text(json.dumps({"intrinsics": {}, "elevations": []}))
+    with pytest.raises(BadInputError, match="bad.json"):
+        RigModel.load(tmp_path / "bad.json")
+
+
+def test_calibration_fits_a_tilted_offset_axis_and_predicts_unseen_azimuths_exactly():
+    # The true station: turntable axis tilted 0.4 deg against the arm and offset 3 mm, arm 0.7 deg high.
+    tilt = axis_rotation(np.zeros(3), np.array([1.0, 0.0, 0.0]), 0.4)
+    truth = RigModel(RigModel.nominal(RIG, list(ELEVATIONS)).intrinsics,
+                     {e: camera_to_turntable(e + 0.7, 0.0, RIG) for e in ELEVATIONS},
+                     np.array([0.003, -0.002, 0.0]), tilt[:3, :3] @ np.array([0.0, 0.0, 1.0]))
+    rng = np.random.default_rng(0)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    gauge = (2.7, q * np.sign(np.linalg.det(q)), rng.normal(size=3))  # what SfM would hand back
+    views = [PosedView(e, a, apply_similarity(truth.camera_to_world(e, a), *gauge))
+             for e in ELEVATIONS for a in np.arange(0.0, 360.0, 15.0)]
+    model = calibrate_rig(views, RigModel.nominal(RIG, list(ELEVATIONS)))
+    assert model.kind == "calibrated" and model.residuals["rotation_median_deg"] < 1e-4
+    # Unseen azimuths: one similarity maps the model onto the truth, to numerical precision.
+    unseen = [(e, a) for e in ELEVATIONS for a in np.arange(7.5, 360.0, 30.0)]
+    pred = [model.camera_to_world(e, a) for e, a in unseen]
+    true = [truth.camera_to_world(e, a) for e, a in unseen]
+    s, r, t = umeyama(np.array([p[:3, 3] for p in pred]), np.array([p[:3, 3] for p in true]))
+    for p, g in zip(pred, true):
+        moved = apply_similarity(p, s, r, t)
+        assert np.linalg.norm(moved[:3, 3] - g[:3, 3]) < 1e-9
+        assert rotation_angle_deg(moved[:3, :3], g[:3, :3]) < 1e-4
+    assert s == pytest.approx(1.0, abs=0.02)  # metric scale comes from the nominal arm length
+
+
+@pytest.mark.slow
+def test_rig_path_triangulates_points_on_the_true_surface_and_the_cross_check_agrees(textured_scan):
+    report = pose_scan(textured_scan, PoseSettings(), RigModel.nominal(RIG, list(ELEVATIONS)))
+    assert report.method == "rig" and report.init_cloud == "sfm"
+    assert report.points >= 300 and report.reprojection_error_px < 1.0
+    dist = surface_distance(read_ply_xyz(textured_scan.poses_dir / "points3d.ply"))
+    assert np.median(dist) < 0.0005 and np.percentile(dist, 90) < 0.002  # metres, on a 10 cm stone
+    assert report.cross_check["registered"] >= 0.7 * report.views
+    assert report.cross_check["rotation_median_deg"] < 0.5 and report.cross_check["centre_median_fraction"] < 0.01
+    assert report.cross_check["drifted_elevations"] == [] and not any("drift" in f for f in report.flags)
+    assert any("fewer images than planned: 31 of 32" in f for f in report.flags)
+
+
+@pytest.mark.slow
+def test_transforms_json_holds_the_rig_poses_in_opengl_axes_and_metres(textured_scan):
+    transforms = read_transforms(textured_scan)
+    assert len(transforms.frames) == 31 and transforms.intrinsics.fx == pytest.approx(RIG.focal_px)
+    raw = json.loads(textured_scan.transforms_path.read_text())
+    first = raw["frames"][0]
+    assert first["file_path"] == "images/e0_a000.png" and first["mask_path"] == "masks/e0_a000.png"
+    gl = np.array(first["transform_matrix"])
+    cv = camera_to_turntable(15.0, 0.0, RIG)
+    np.testing.assert_allclose(gl[:3, 0], cv[:3, 0], atol=1e-12)
+    np.testing.assert_allclose(gl[:3, 1:3], -cv[:3, 1:3], atol=1e-12)
+    for frame in transforms.frames:
+        e, a = ELEVATIONS[int(frame.file_path[8])], 360.0 / 16 * int(frame.file_path[11:14])
+        truth = camera_to_turntable(e, a, RIG)
+        assert rotation_angle_deg(frame.c2w[:3, :3], truth[:3, :3]) < 0.1
+        assert np.linalg.norm(frame.c2w[:3, 3] - truth[:3, 3]) < 0.002 * RIG.orbit_radius_m
+    assert (textured_scan.poses_dir / "colmap" / "points3D.bin").is_file()
+
+
+@pytest.mark.slow
+def test_a_rig_model_that_no_longer_matches_the_station_is_flagged_as_drift(textured_scan, tmp_path):
+    nominal = RigModel.nominal(RIG, list(ELEVATIONS))
+    bent = dict(nominal.elevation_poses)
+    bent[40.0] = camera_to_turntable(44.0, 0.0, RIG)  # the tilt arm slipped by 4 degrees
+    scan = ScanFolder(tmp_path / "copy")
+    shutil.copytree(textured_scan.root, scan.root)
+    shutil.rmtree(scan.poses_dir, ignore_errors=True)
+    report = pose_scan(scan, PoseSettings(), RigModel(nominal.intrinsics, bent))
+    assert 40.0 in report.cross_check["drifted_elevations"]
+    assert any("disagree with the rig model (drift)" in f for f in report.flags)
+
+
+@pytest.mark.slow
+def test_a_textureless_stone_still_gets_rig_poses_and_a_visual_hull_cloud_with_a_flag(tmp_path):
+    scan = make_scan(tmp_path / "plain", azimuths=8, textured=False)
+    report = pose_scan(scan, PoseSettings(cross_check=False), RigModel.nominal(RIG, list(ELEVATIONS)))
+    assert report.init_cloud == "visual_hull" and report.points > 500
+    assert any("carved from masks" in f for f in report.flags)
+    dist = surface_distance(read_ply_xyz(scan.poses_dir / "points3d.ply"))
+    assert np.median(dist) < 0.006  # a hull from 16 views hugs the stone within a few voxels
+    assert len(read_transforms(scan).frames) == 16
+
+
+def test_too_few_images_is_a_clear_error(tmp_path):
+    scan = make_scan(tmp_path / "tiny", azimuths=1)
+    with pytest.raises(PosingError, match="2 usable images"):
+        pose_scan(scan, PoseSettings(), RigModel.nominal(RIG, list(ELEVATIONS)))
+
+
+def load_temple(step: int = 1) -> tuple[list[str], dict[str, np.ndarray], np.ndarray]:
+    lines = (TEMPLE / "templeSR_par.txt").read_text().split("\n")[1:]
+    names, c2ws = [], {}
+    for line in filter(None, (ln.strip() for ln in lines)):
+        parts = line.split()
+        vals = np.array(parts[1:], dtype=np.float64)
+        k, r, t = vals[:9].reshape(3, 3), vals[9:18].reshape(3, 3), vals[18:21]
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = r, t
+        names.append(parts[0])
+        c2ws[parts[0]] = np.linalg.inv(w2c)
+    return names[::step], c2ws, k
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+@pytest.mark.skipif(not TEMPLE.is_dir(), reason="shared data (Middlebury templeSparseRing) not present")
+def test_pure_sfm_poses_the_middlebury_temple_ring_within_one_percent_of_its_radius(tmp_path):
+    import cv2
+
+    names, truth, _ = load_temple()
+    scan = ScanFolder(tmp_path / "temple")
+    scan.images_dir.mkdir(parents=True)
+    scan.masks_dir.mkdir()
+    kernel_d, kernel_e = np.ones((21, 21), np.uint8), np.ones((15, 15), np.uint8)
+    for name in names:
+        img = cv2.imread(str(TEMPLE / name))
+        grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32) / 255.0
+        mask = cv2.erode(cv2.dilate((grey > 0.19).astype(np.uint8), kernel_d), kernel_e)  # README recipe
+        cv2.imwrite(str(scan.images_dir / name), img)
+        cv2.imwrite(str(scan.masks_dir / name), mask * 255)
+    report = pose_scan(scan, PoseSettings(), None)
+    assert report.method == "sfm" and len(report.registered) == len(names)
+    posed = {Path(f.file_path).name: f.c2w for f in read_transforms(scan).frames}
+    common = sorted(posed)
+    gt = np.array([truth[n][:3, 3] for n in common])
+    s, r, t = umeyama(np.array([posed[n][:3, 3] for n in common]), gt)
+    err = np.linalg.norm((s * np.array([posed[n][:3, 3] for n in common]) @ r.T + t) - gt, axis=1)
+    radius = np.median(np.linalg.norm(gt - gt.mean(0), axis=1))
+    print(f"temple ring: {len(common)} views, centre error max {err.max() / radius:.4%} "
+          f"median {np.median(err) / radius:.4%} of radius {radius:.4f}, {report.seconds:.1f} s")
+    assert err.max() < 0.01 * radius
