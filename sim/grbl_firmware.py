@@ -56,6 +56,8 @@ class GrblFirmware:
                  clock: Callable[[], float] = time.monotonic, seed: int = 0) -> None:
         if flavour not in BANNERS:
             raise ValueError(f"unknown firmware flavour {flavour!r}; expected one of {sorted(BANNERS)}")
+        if not time_scale > 0:
+            raise ValueError(f"time_scale must be positive, got {time_scale!r}")
         self.flavour = flavour
         self.time_scale = time_scale
         self.settings = dict(DEFAULT_SETTINGS) | (settings or {})
@@ -224,8 +226,8 @@ class GrblFirmware:
             self._out += f"{_UNLOCK_MSG}\r\n".encode()
 
     def _halt(self, now: float) -> None:
-        """Stop dead (reset, alarm, power loss): the counter keeps whatever was stepped."""
-        self._mpos = self._machine(now)
+        """Stop dead (reset, alarm, power loss): the counter keeps the steps taken so far."""
+        self._mpos = list(self._on_steps(self._machine(now)))
         self._seg = None
         self._queue.clear()
         self._planned = list(self._mpos)
@@ -379,8 +381,13 @@ class GrblFirmware:
             return True
         return all(-1e-6 <= t <= self.settings[130 + i] + 1e-6 for i, t in enumerate(target))
 
+    def _on_steps(self, pos: list[float] | tuple[float, ...]) -> tuple[float, ...]:
+        """Snap to whole motor steps ($100-$102): targets and stops are step counts in GRBL."""
+        return tuple(round(p * self.settings[100 + i]) / self.settings[100 + i] for i, p in enumerate(pos))
+
     def enqueue(self, block: PlannerBlock, now: float) -> None:
-        """Plan a block; it starts at once when the machine is idle."""
+        """Plan a block (target snapped to steps); it starts at once when the machine is idle."""
+        block.target = self._on_steps(block.target)
         self._queue.append(block)
         self._planned = list(block.target)
         if self._seg is None and self._state not in ("Hold", "Door"):

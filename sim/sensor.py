@@ -37,7 +37,8 @@ class SensorModel:
     black_level: int = 512
     white_level: int = 16383  # 14-bit data in a 16-bit container
     full_well_e: float = 30000.0  # electrons that fill the range at ISO 100
-    electrons_per_radiance_s: float = 2.0e6  # electrons per (unit camera-RGB radiance x second), ISO 100
+    # electrons per (unit camera-RGB radiance x second) at ISO 100: 1/30 s puts the backdrop near 40% of range
+    electrons_per_radiance_s: float = 6.0e5
     read_noise_dn: float = 2.0
     vignetting_corner_deg: float = 20.0  # off-axis angle at the image corner for the cos^4 falloff
 

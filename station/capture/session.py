@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
-from typing import Callable, Protocol
+from typing import Callable, Literal, Protocol
 
 from station import __version__
 from station.capture.plan import PlannedFrame, ScanPlan
@@ -24,15 +24,19 @@ log = logging.getLogger(__name__)
 
 
 class MoveStatus(Protocol):
-    def wait(self, timeout: float | None = None) -> None: ...
+    def wait(self, timeout: float | None = None) -> object: ...
+
+
+class RecoveryOutcome(Protocol):
+    exact: bool  # False: the board lost its step count mid-move and was not re-homed
 
 
 class TurntableAxes(Protocol):
-    """What the session needs from a turntable driver."""
+    """What the session needs from a turntable driver (station.turntable.grbl.Turntable)."""
 
-    def start_move(self, turn_deg: float, tilt_deg: float) -> MoveStatus: ...
+    def move_to(self, angle_deg: float, tilt_deg: float) -> MoveStatus: ...
 
-    def recover(self) -> None: ...
+    def recover(self) -> RecoveryOutcome: ...
 
 
 class PendingFrame(Protocol):
@@ -49,10 +53,16 @@ class StillCamera(Protocol):
     def trigger(self) -> PendingFrame: ...
 
 
-class Operator(Protocol):
-    """Whoever places and removes the stone: a person at a prompt, or the simulator."""
+OperatorAction = Literal["clear_turntable", "place_stone"]
 
-    def request(self, action: str) -> None: ...
+
+class Operator(Protocol):
+    """Whoever places and removes the stone: a person at a prompt, or the simulator.
+
+    `request` returns once the action is done (a person confirms at the prompt).
+    """
+
+    def request(self, action: OperatorAction, message: str) -> None: ...
 
 
 @dataclass
@@ -114,10 +124,10 @@ class ScanSession:
         plates = [f for f in todo if f.kind == "plate"]
         shots = [f for f in todo if f.kind == "shot"]
         if plates:
-            self.operator.request("remove the stone: shooting empty background plates")
+            self.operator.request("clear_turntable", "Remove the stone: empty background plates are shot first.")
             self._shoot_all(plates, entries, summary, total)
         if shots:
-            self.operator.request("place the stone on the turntable")
+            self.operator.request("place_stone", "Place the stone on the centre of the turntable.")
             self._shoot_all(shots, entries, summary, total)
         self.scan.mark_done("capture", {"frames": total, "software": __version__, "utc": _utc_now()})
         return summary
@@ -150,8 +160,8 @@ class ScanSession:
 
     def _start_move(self, frame: PlannedFrame, summary: ScanSummary) -> MoveStatus | None:
         try:
-            return self.turntable.start_move(frame.azimuth_deg, frame.elevation_deg)
-        except DeviceError as exc:
+            return self.turntable.move_to(frame.azimuth_deg, frame.elevation_deg)
+        except (DeviceError, TimeoutError) as exc:
             log.warning("turntable fault starting move to %s (%s); will recover", frame.file, exc)
             return None
 
@@ -160,25 +170,33 @@ class ScanSession:
             try:
                 move.wait(self.config.move_timeout_s)
                 return
-            except DeviceError as exc:
+            except (DeviceError, TimeoutError) as exc:
                 log.warning("turntable fault moving to %s (%s); recovering", frame.file, exc)
+        self._recover(frame, summary)
         self._move(frame, summary)
 
     def _move(self, frame: PlannedFrame, summary: ScanSummary) -> None:
         """Blocking move with recovery: reconnect, re-establish position, then try again."""
         for attempt in range(self.config.device_retries + 1):
             try:
-                self.turntable.start_move(frame.azimuth_deg, frame.elevation_deg).wait(self.config.move_timeout_s)
+                self.turntable.move_to(frame.azimuth_deg, frame.elevation_deg).wait(self.config.move_timeout_s)
                 return
-            except DeviceError as exc:
+            except (DeviceError, TimeoutError) as exc:
                 if attempt == self.config.device_retries:
                     raise DeviceError(
                         f"turntable could not reach elevation {frame.elevation_deg} deg, azimuth "
                         f"{frame.azimuth_deg} deg for {frame.file} after {attempt + 1} attempts: {exc}"
                     ) from exc
                 log.warning("turntable fault (%s); recovering before %s", exc, frame.file)
-                summary.recoveries += 1
-                self.turntable.recover()
+                self._recover(frame, summary)
+
+    def _recover(self, frame: PlannedFrame, summary: ScanSummary) -> None:
+        summary.recoveries += 1
+        if not self.turntable.recover().exact:
+            log.warning(
+                "turntable lost its position without homing; angles from %s on may be off. "
+                "Enable homing ($22=1) for exact recovery.", frame.file,
+            )
 
     def _store(self, frame: PlannedFrame, data: bytes, entries: dict[str, ManifestEntry]) -> None:
         path = self.scan.resolve_inside(frame.file)

@@ -61,6 +61,7 @@ class MeshConfig:
     taubin_iterations: int = 10  # light smoothing that keeps volume
     opaque_alpha: float = 0.5  # rendered alpha above which a pixel's depth is a surface
     empty_alpha: float = 0.05  # rendered alpha below which a pixel sees free space
+    min_view_cosine: float = 0.75  # rendered depth seen more obliquely than 41 deg is not fused
 
 
 def tsdf_fuse(
@@ -170,6 +171,17 @@ class MeshCheck:
     def ok(self) -> bool:
         return not self.problems()
 
+    def to_metrics(self) -> dict:
+        """The keys `metrics.json` and the gate read."""
+        return {
+            "mesh_watertight": self.watertight and self.winding_consistent and self.volume_m3 > 0,
+            "mesh_manifold": self.manifold_status == "NoError" and self.pinched_vertices == 0 and self.bodies == 1,
+            "mesh_problems": self.problems(),
+            "mesh_volume_m3": self.volume_m3,
+            "mesh_area_m2": self.area_m2,
+            "mesh_genus": self.genus,
+        }
+
     def problems(self) -> list[str]:
         out = []
         if not self.watertight:
@@ -259,8 +271,26 @@ def render_depth_maps(
             depth = colors[..., 3].numpy()  # [C, H, W]
             alpha = alphas[..., 0].numpy()  # [C, H, W]
             out = np.where(alpha >= config.opaque_alpha, depth, np.nan)
-            depths.append(np.where(alpha <= config.empty_alpha, np.inf, out))
+            out = np.where(alpha <= config.empty_alpha, np.inf, out)
+            for d, K in zip(out, Ks[start : start + 8]):
+                d[grazing(d, K, config.min_view_cosine)] = np.nan
+            depths.append(out)
     return np.concatenate(depths, axis=0).astype(np.float32)
+
+
+def grazing(depth: np.ndarray, K: np.ndarray, min_cosine: float) -> np.ndarray:
+    """Pixels [H, W] that see the surface at a grazing angle (|cos| between ray and normal below
+    `min_cosine`). Splat depth is a blend of Gaussian-centre depths, biased towards the camera by
+    about a Gaussian's size times the slope; other views see those surfaces head-on."""
+    height, width = depth.shape
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)  # [H, W, 3]
+    finite = np.where(np.isfinite(depth), depth, np.nan)
+    points = rays * finite[..., None]
+    normal = np.cross(np.gradient(points, axis=1), np.gradient(points, axis=0))  # [H, W, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosine = np.abs(np.sum(normal * rays, -1)) / (np.linalg.norm(normal, axis=-1) * np.linalg.norm(rays, axis=-1))
+    return np.isfinite(depth) & ~(cosine >= min_cosine)
 
 
 def build_watertight_mesh(

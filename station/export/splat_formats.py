@@ -60,9 +60,10 @@ def decode_splat(data: bytes, source: Path) -> SplatModel:
             f"{source}: {len(data)} bytes is not a whole number of 32-byte .splat records (truncated or not a .splat)"
         )
     records = np.frombuffer(data, dtype=SPLAT_DTYPE)
-    scale = records["scale"].astype(np.float64)
-    if not np.all(np.isfinite(records["position"])) or not np.all(np.isfinite(scale)) or np.any(scale <= 0):
+    finite = np.all(np.isfinite(records["position"])) and np.all(np.isfinite(records["scale"]))
+    if not finite or np.any(records["scale"] <= 0):
         raise BadInputError(f"{source}: .splat holds non-finite positions or non-positive scales (garbage data)")
+    scale = records["scale"].astype(np.float64)
     rgba = records["rgba"].astype(np.float64) / 255.0
     q = (records["rot"].astype(np.float64) - 128.0) / 128.0
     if np.any(np.linalg.norm(q, axis=1) < 0.5):

@@ -20,7 +20,7 @@ C30, C31, C32, C33 = -0.5900435899266435, 2.890611442640554, -0.4570457994644658
 C34, C35, C36 = -0.4570457994644658, 1.445305721320277, -0.5900435899266435
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sh_basis(x, y, z, out):
     """Real SH basis up to degree 3 (gsplat/3DGS signs) at unit direction (x, y, z) into out[16]."""
     xx, yy, zz = x * x, y * y, z * z
@@ -42,7 +42,7 @@ def _sh_basis(x, y, z, out):
     out[15] = C36 * x * (xx - 3 * yy)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sh_basis_grad(x, y, z, gx, gy, gz):
     """d basis_k / d(x, y, z) for k < 16 into gx, gy, gz [16]."""
     xx, yy, zz = x * x, y * y, z * z
@@ -67,7 +67,7 @@ def _sh_basis_grad(x, y, z, gx, gy, gz):
     gx[15], gy[15] = C36 * (3 * xx - 3 * yy), -6 * C36 * x * y
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _quat_rot(q, R):
     """Unit rotation from an unnormalised wxyz quaternion into R [3, 3]; returns the norm and unit quaternion."""
     nrm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
@@ -78,7 +78,7 @@ def _quat_rot(q, R):
     return nrm, w, x, y, z
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _mm(A, B, out):
     """out = A @ B for tiny matrices (numba's @ calls BLAS and allocates: far too slow per Gaussian)."""
     for i in range(A.shape[0]):
@@ -89,7 +89,7 @@ def _mm(A, B, out):
             out[i, j] = acc
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _camera_cov(q, s, Rw, R, M, cov, covc, tmp):
     """World covariance R S S R^T and its camera-frame rotation Rw cov Rw^T (into cov, covc [3, 3])."""
     _quat_rot(q, R)
@@ -105,7 +105,7 @@ def _camera_cov(q, s, Rw, R, M, cov, covc, tmp):
             covc[i, j] = tmp[i, 0] * Rw[j, 0] + tmp[i, 1] * Rw[j, 1] + tmp[i, 2] * Rw[j, 2]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _jacobian(x, y, z, fx, fy, cx, cy, width, height):
     """EWA Jacobian entries (J00, J02, J11, J12) with gsplat's 1.3x frustum clamp, and the clamp flags."""
     lxp = (width - cx) / fx + 0.3 * (0.5 * width / fx)

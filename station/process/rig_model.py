@@ -48,8 +48,10 @@ def mean_rotation(rotations: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(r_a: np.ndarray, r_b: np.ndarray) -> float:
-    cos = (np.trace(r_a.T @ r_b) - 1.0) / 2.0
-    return float(np.rad2deg(np.arccos(np.clip(cos, -1.0, 1.0))))
+    """Angle of r_a^T r_b; from the chordal distance |r_a - r_b|_F = 2 sqrt(2) sin(angle / 2),
+    which unlike arccos of the trace stays exact for tiny angles."""
+    chord = np.linalg.norm(r_a - r_b) / (2.0 * np.sqrt(2.0))
+    return float(np.rad2deg(2.0 * np.arcsin(np.clip(chord, 0.0, 1.0))))
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:

@@ -39,16 +39,20 @@ class Intrinsics:
 @dataclass(frozen=True)
 class SfmSettings:
     max_features: int = 4096
+    # Stones are low-contrast: COLMAP's default (0.0067) finds ~5 features on a simulated stone at
+    # 320x240 and ~110 at 640x480; 0.004 roughly doubles that without admitting noise.
+    peak_threshold: float = 0.004
     mask_erode_px: int = 2  # features on the silhouette edge see the backdrop: drop them
     num_threads: int = 2
     max_runtime_s: float = 600.0
     min_track_angle_deg: float = 1.5
     # Sparse rings (16 views, 20+ deg apart) leave few inliers per pair; COLMAP's defaults (15, 30)
     # drop such views. Lower floors still need a geometric verification to pass.
-    min_num_matches: int = 15
-    abs_pose_min_num_inliers: int = 30
+    min_num_matches: int = 10
+    abs_pose_min_num_inliers: int = 12
     guided_matching: bool = False
-    affine_sift: bool = False
+    affine_sift: bool = False  # affine-adapted, domain-size-pooled SIFT: wide baselines, ~2x the time
+    refine_principal_point: bool = False  # only when intrinsics are unknown and the views ring the object
 
 
 def write_colmap_masks(masks: dict[str, np.ndarray], folder: Path, erode_px: int) -> None:
@@ -81,6 +85,7 @@ def extract_and_match(
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = settings.num_threads
     extraction.sift.max_num_features = settings.max_features
+    extraction.sift.peak_threshold = settings.peak_threshold
     extraction.sift.estimate_affine_shape = settings.affine_sift
     extraction.sift.domain_size_pooling = settings.affine_sift
     pycolmap.extract_features(
@@ -187,6 +192,8 @@ def map_incremental(
     if fix_intrinsics:
         options.ba_refine_focal_length = False
         options.ba_refine_extra_params = False
+    else:
+        options.ba_refine_principal_point = settings.refine_principal_point
     out_dir.mkdir(parents=True, exist_ok=True)
     models = pycolmap.incremental_mapping(database, image_dir, out_dir, options=options)
     if not models:

@@ -43,25 +43,28 @@ def carve(
     lo, hi = view_bounds(c2ws, intr)
     axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # [R^3, 3]
-    inside = np.ones(len(grid), dtype=bool)
+    alive = np.arange(len(grid))  # voxels not yet carved away: each view only projects these
     seen_count = np.zeros(len(grid), dtype=np.int64)
     colour_sum = np.zeros((len(grid), 3))
     colour_n = np.zeros(len(grid))
-    k = intr.matrix()
+    k = intr.matrix().astype(np.float32)
     for c2w, mask, image in zip(c2ws, masks, images):
-        w2c = np.linalg.inv(c2w)
-        cam = grid @ w2c[:3, :3].T + w2c[:3, 3]  # [R^3, 3]
+        w2c = np.linalg.inv(c2w).astype(np.float32)
+        cam = grid[alive].astype(np.float32) @ w2c[:3, :3].T + w2c[:3, 3]  # [A, 3]
         front = cam[:, 2] > 1e-6
         uvw = cam @ k.T
-        u = np.floor(uvw[:, 0] / np.where(front, uvw[:, 2], 1.0)).astype(np.int64)
-        v = np.floor(uvw[:, 1] / np.where(front, uvw[:, 2], 1.0)).astype(np.int64)
+        z = np.where(front, uvw[:, 2], 1.0)
+        u = np.floor(uvw[:, 0] / z).astype(np.int64)
+        v = np.floor(uvw[:, 1] / z).astype(np.int64)
         seen = front & (u >= 0) & (u < mask.shape[1]) & (v >= 0) & (v < mask.shape[0])
-        hit = np.zeros(len(grid), dtype=bool)
+        hit = np.zeros(len(alive), dtype=bool)
         hit[seen] = mask[v[seen], u[seen]]
-        inside &= hit | ~seen  # a voxel outside the frame is not evidence against it
-        seen_count += seen
-        colour_sum[hit] += image[v[hit], u[hit], :3]
-        colour_n[hit] += 1
+        seen_count[alive[seen]] += 1
+        colour_sum[alive[hit]] += image[v[hit], u[hit], :3]
+        colour_n[alive[hit]] += 1
+        alive = alive[hit | ~seen]  # a voxel outside the frame is not evidence against it
+    inside = np.zeros(len(grid), dtype=bool)
+    inside[alive] = True
     inside &= seen_count >= max(2, len(c2ws) // 2)  # ...but a voxel few views see is not evidence for it
     occ = inside.reshape((resolution,) * 3)
     padded = np.pad(occ, 1, constant_values=False)

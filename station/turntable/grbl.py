@@ -10,16 +10,18 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Literal
+from dataclasses import dataclass, replace
+from typing import Literal, TypeVar
 
 from station.errors import BadInputError, DeviceDisconnectedError, DeviceError, DeviceTimeoutError
-from station.turntable.errors import GrblSettingsError, TiltLimitError, UnexpectedResetError, WaitTimeoutError
+from station.turntable.action import MoveStatus
+from station.turntable.errors import GrblSettingsError, MoveCancelledError, TiltLimitError, UnexpectedResetError
 from station.turntable.link import SerialLine
 from station.turntable.protocol import FirmwareInfo, GrblProtocol
 from station.turntable.recovery import Recovery, recover
 from station.turntable.status import MachineStatus
 
+T = TypeVar("T")
 Rotation = Literal["shortest", "continuous"]
 _AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2, "A": 3}
 
@@ -53,40 +55,6 @@ class TurntableConfig:
             raise BadInputError(f"TurntableConfig.tilt_axis={self.tilt_axis!r} must be 'Y' or 'A'")
 
 
-class MoveStatus:
-    """Completion of one action (ophyd style): `wait()` returns the result or re-raises the failure."""
-
-    def __init__(self, description: str) -> None:
-        self.description = description
-        self._done = threading.Event()
-        self._result: tuple[float, float] | None = None
-        self._error: BaseException | None = None
-
-    @property
-    def done(self) -> bool:
-        return self._done.is_set()
-
-    @property
-    def success(self) -> bool:
-        return self._done.is_set() and self._error is None
-
-    @property
-    def exception(self) -> BaseException | None:
-        return self._error
-
-    def _finish(self, result: tuple[float, float] | None, error: BaseException | None) -> None:
-        self._result, self._error = result, error
-        self._done.set()
-
-    def wait(self, timeout: float | None = None) -> tuple[float, float]:
-        """Position reached (turntable, tilt) in degrees; WaitTimeoutError if *we* stopped waiting."""
-        if not self._done.wait(timeout):
-            raise WaitTimeoutError(f"stopped waiting after {timeout} s for {self.description}; it is still running")
-        if self._error is not None:
-            raise self._error
-        return self._result  # type: ignore[return-value]  # set together with _done when no error
-
-
 def trapezoid_seconds(distance: float, rate_per_min: float, accel: float) -> float:
     """Rest-to-rest move time at `rate_per_min` with `accel` (units/s^2): GRBL's block profile."""
     v = rate_per_min / 60.0
@@ -112,6 +80,8 @@ class Turntable:
         self._last_status: MachineStatus | None = None
         self._counter_lost = False  # the board rebooted or the link dropped: its MPos can't be trusted
         self._counter_lost_mid_move = False
+        self._in_motion = False  # a motion line went out and has not been seen complete
+        self._cancelling = threading.Event()
 
     # ---- connection ---------------------------------------------------------------------
     @classmethod
@@ -123,11 +93,15 @@ class Turntable:
         """
         config = config or TurntableConfig()
         if timeout is not None:
-            config = TurntableConfig(**{**config.__dict__, "banner_timeout_s": timeout})
+            config = replace(config, banner_timeout_s=timeout)
         table = cls(port, config)
         with table._io:
             table._open()
-            table._establish()
+            try:
+                table._establish()
+            except BaseException:
+                table.close()  # a refused port must not stay open (a retry or another program needs it)
+                raise
         return table
 
     def _open(self) -> None:
@@ -224,26 +198,27 @@ class Turntable:
             return self._guard(lambda: self._p.query_status(self.config.reply_timeout_s))
 
     def position(self) -> tuple[float, float]:
-        """Work position now: (turntable unwrapped, tilt) degrees."""
+        """Work position now: (turntable unwrapped, tilt) degrees; waits for a running action."""
         return self._work(self.status())
 
-    def _guard(self, action: Callable[[], object], *, moving: bool = False):  # type: ignore[no-untyped-def]
+    def _guard(self, action: Callable[[], T]) -> T:
         """Run an I/O action; remember when the board's step counter can no longer be trusted."""
+        self._in_motion = False  # the action sets it once a motion line has gone out
         try:
             return action()
         except DeviceDisconnectedError:
-            self._lose_counter(moving)
+            self._lose_counter()
             if self._proto is not None:
                 self._proto.line.close()
                 self._proto = None
             raise
         except UnexpectedResetError:
-            self._lose_counter(moving)
+            self._lose_counter()
             raise
 
-    def _lose_counter(self, moving: bool) -> None:
+    def _lose_counter(self) -> None:
         self._counter_lost = True
-        self._counter_lost_mid_move = self._counter_lost_mid_move or moving
+        self._counter_lost_mid_move = self._counter_lost_mid_move or self._in_motion
 
     # ---- actions ----------------------------------------------------------------------------
     def _spawn(self, description: str, work: Callable[[], tuple[float, float]]) -> MoveStatus:
@@ -252,7 +227,7 @@ class Turntable:
         def run() -> None:
             try:
                 with self._io:
-                    result = self._guard(work, moving=True)
+                    result = self._guard(work)
             except BaseException as exc:  # handed to whoever waits, as ophyd's status does
                 status._finish(None, exc)
             else:
@@ -277,12 +252,20 @@ class Turntable:
         raise BadInputError(f"rotation mode {mode!r} must be 'shortest' or 'continuous'")
 
     def move_to(self, angle_deg: float, tilt_deg: float, rotation: Rotation | None = None) -> MoveStatus:
-        """Absolute move (G90 G1) to turntable angle and tilt, both in degrees."""
+        """Absolute move (G90 G1) to turntable angle and tilt, both in degrees.
+
+        Bad input raises here; everything the device does is reported through the returned status.
+        The unwrapped target is taken from where the previous action left the table.
+        """
         low, high = self.config.tilt_limits_deg
         if not (math.isfinite(tilt_deg) and low <= tilt_deg <= high):
             raise TiltLimitError(f"tilt {tilt_deg!r} degrees is outside the limits [{low:g}, {high:g}]")
-        target = (self.target_for(angle_deg, rotation), float(tilt_deg))
-        return self._spawn(f"move to {target[0]:.3f}, {target[1]:.3f} deg", lambda: self._move_locked(target))
+        self.target_for(angle_deg, rotation)  # validates angle and mode now, not in the worker
+
+        def move() -> tuple[float, float]:
+            return self._move_locked((self.target_for(angle_deg, rotation), float(tilt_deg)))
+
+        return self._spawn(f"move to {angle_deg:g} deg, tilt {tilt_deg:g} deg", move)
 
     def home(self) -> MoveStatus:
         """Homing cycle ($H); GRBL answers ok only once homing is complete."""
@@ -295,7 +278,28 @@ class Turntable:
 
     def feed_hold(self) -> None:
         """Decelerate to a stop (`!`), keeping position; a running move waits through the hold."""
+        with self._status_cond:
+            self._last_status = None  # resume() must see a report from after this hold
         self._p.line.write(b"!")
+
+    def cancel(self, timeout: float | None = None) -> None:
+        """Operator stop of the running move: hold, wait for Hold:0, then soft-reset.
+
+        GRBL keeps its position when reset from a completed hold (no ALARM:3), so the running move
+        ends in MoveCancelledError with the work position restored, distinct from any device fault.
+        Does nothing when no move is running.
+        """
+        if self._io.acquire(blocking=False):
+            self._io.release()
+            return
+        self._cancelling.set()
+        self.feed_hold()
+        deadline = time.monotonic() + (timeout or self.config.reply_timeout_s + self.config.motion_margin_s)
+        seen = self._wait_state(lambda s: s.state == "Idle" or (s.state == "Hold" and s.substate == 0), deadline, "Hold:0")
+        if seen.state == "Hold":
+            self._p.line.write(b"\x18")
+        else:
+            self._cancelling.clear()  # it finished before the hold took
 
     def resume(self, timeout: float | None = None) -> None:
         """Cycle start (`~`), sent only once the hold is complete (Hold:0): GRBL ignores it in Hold:1."""
@@ -303,13 +307,14 @@ class Turntable:
         self._wait_state(lambda s: s.state in ("Hold", "Door") and s.substate == 0, deadline, "Hold:0")
         self._p.line.write(b"~")
 
-    def _wait_state(self, ok: Callable[[MachineStatus], bool], deadline: float, what: str) -> None:
+    def _wait_state(self, ok: Callable[[MachineStatus], bool], deadline: float, what: str) -> MachineStatus:
         period = 1.0 / self.config.poll_hz
         while time.monotonic() < deadline:
             if self._io.acquire(blocking=False):  # nobody is polling for us: poll ourselves
                 try:
-                    if ok(self._guard(lambda: self._p.query_status(self.config.reply_timeout_s))):
-                        return
+                    status = self._guard(lambda: self._p.query_status(self.config.reply_timeout_s))
+                    if ok(status):
+                        return status
                 finally:
                     self._io.release()
                 time.sleep(period)
@@ -317,7 +322,7 @@ class Turntable:
                 with self._status_cond:
                     seen = self._last_status
                     if seen is not None and ok(seen):
-                        return
+                        return seen
                     self._status_cond.wait(min(period, max(0.0, deadline - time.monotonic())))
         raise DeviceTimeoutError(f"turntable on {self.port} did not reach {what} in time")
 
@@ -341,7 +346,9 @@ class Turntable:
         proto, cfg = self._p, self.config
         line = f"G90 G1 X{target[0]:.4f} {cfg.tilt_axis}{target[1]:.4f} F{cfg.feed_deg_min:.1f}"
         budget = self._estimate_s(target) * 1.5 + cfg.motion_margin_s
+        proto.drain()  # a board that rebooted while idle must not take this line in its new frame
         proto.line.write(line.encode("ascii") + b"\n")
+        self._in_motion = True
         if proto.await_reply(line, time.monotonic() + cfg.reply_timeout_s) is None:
             # A dropped `ok`: the line was taken if the table is moving or already there.
             status = proto.query_status(cfg.reply_timeout_s)
@@ -350,10 +357,21 @@ class Turntable:
                                          f"{status.state} at {self._work(status)}, not moving to {target}")
         proto.line.write(b"G4 P0\n")
 
-        def hold_extends(status: MachineStatus) -> float | None:
-            return time.monotonic() + budget if status.state in ("Hold", "Door") else None
+        def adjust(status: MachineStatus, deadline: float) -> float:
+            if status.state in ("Hold", "Door"):
+                return max(deadline, time.monotonic() + budget)
+            if status.state == "Idle" and self._at(status, target):
+                return min(deadline, time.monotonic() + cfg.reply_timeout_s)
+            return deadline
 
-        reply = proto.await_reply("G4 P0", time.monotonic() + budget, poll_s=1.0 / cfg.poll_hz, extend=hold_extends)
+        try:
+            reply = proto.await_reply("G4 P0", time.monotonic() + budget, poll_s=1.0 / cfg.poll_hz, adjust=adjust)
+        except UnexpectedResetError:
+            if not self._cancelling.is_set():
+                raise
+            self._cancelling.clear()
+            raise MoveCancelledError(f"move to {target} cancelled by the operator; "
+                                     f"table stopped at {self._restore_after_reset()}") from None
         status = proto.query_status(cfg.reply_timeout_s)
         if not (status.state == "Idle" and self._at(status, target)):
             waited = "no ok to G4 P0" if reply is None else "G4 P0 answered"
@@ -362,11 +380,23 @@ class Turntable:
         self._known = self._work(status)
         return self._known
 
+    def _restore_after_reset(self) -> tuple[float, float]:
+        """A reset from rest keeps MPos but clears G92: put the old work offset back."""
+        old_wco = self._wco or (0.0,) * (self._axis + 1)
+        mpos = self._p.query_status(self.config.reply_timeout_s).machine_position(self._wco)
+        work = (mpos[0] - old_wco[0], mpos[self._axis] - old_wco[self._axis])
+        self._p.command(f"G92 X{work[0]:.4f} {self.config.tilt_axis}{work[1]:.4f}", self.config.reply_timeout_s)
+        self._read_wco()
+        self._known = self._last_seen = self._work(self._p.query_status(self.config.reply_timeout_s))
+        return self._known
+
     def recover(self) -> Recovery:
         """Bring the table back after a vanished port, a board reset, or an alarm; see `recovery.recover`."""
         return recover(self)
 
     def _home_locked(self) -> tuple[float, float]:
+        self._p.drain()
+        self._in_motion = True
         self._p.command("$H", self.config.home_timeout_s)
         self._read_wco()
         self._known = self._work(self._p.query_status(self.config.reply_timeout_s))

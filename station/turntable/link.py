@@ -47,10 +47,11 @@ class SerialLine:
                 raw = bytes(self._buffer[:cut])
                 del self._buffer[: cut + 1]
                 return raw.rstrip(b"\r").decode("ascii", errors="replace")
-            if time.monotonic() >= deadline:
-                return None
             try:
-                chunk = self._serial.read(max(1, self._serial.in_waiting))
+                waiting = self._serial.in_waiting
+                if not waiting and time.monotonic() >= deadline:
+                    return None
+                chunk = self._serial.read(waiting or 1)  # blocks at most _POLL_S when nothing waits
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 # TypeError/AttributeError: pyserial's posix read on a descriptor closed under it.
                 raise DeviceDisconnectedError(f"turntable port {self.port} vanished while reading: {exc}") from exc

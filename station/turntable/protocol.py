@@ -70,11 +70,12 @@ class GrblProtocol:
         return "noise", text
 
     def await_reply(self, sent: str, deadline: float, *, poll_s: float | None = None,
-                    extend: Callable[[MachineStatus], float | None] | None = None) -> list[str] | None:
+                    adjust: Callable[[MachineStatus, float], float] | None = None) -> list[str] | None:
         """Info lines of the reply to `sent`, or None if no reply came by `deadline`.
 
         With `poll_s`, a `?` goes out whenever the line is quiet that long (status fallback, <= 5 Hz);
-        `extend(status)` may push the deadline back (a feed hold is the operator's time, not a fault).
+        `adjust(status, deadline)` returns a new deadline: later during a feed hold (the operator's
+        time, not a fault), sooner once the table is seen idle at its target (the `ok` was lost).
         """
         info: list[str] = []
         next_poll = time.monotonic() + poll_s if poll_s else float("inf")
@@ -94,9 +95,13 @@ class GrblProtocol:
                 raise GrblError(int(value), sent, self.port)
             if kind == "info":
                 info.append(str(value))
-            if kind == "status" and extend is not None:
-                later = extend(value)
-                deadline = max(deadline, later) if later is not None else deadline
+            if kind == "status" and adjust is not None:
+                deadline = adjust(value, deadline)  # type: ignore[arg-type]
+
+    def drain(self) -> None:
+        """Read what already arrived unasked: a banner or ALARM here must stop the next line going out."""
+        while (text := self.line.read_line(0.0)) is not None:
+            self.classify(text)
 
     def command(self, text: str, timeout_s: float) -> list[str]:
         """Send one line and return its info lines; a missing reply is a DeviceTimeoutError."""

@@ -54,7 +54,7 @@ def _reconnect(table: Turntable) -> None:
             raise
         except DeviceError as exc:
             table.close()
-            table._lose_counter(moving=False)
+            table._lose_counter()
             if time.monotonic() >= deadline:
                 raise DeviceDisconnectedError(
                     f"turntable on {table.port} did not come back within {cfg.reconnect_timeout_s:g} s: {exc}") from exc

@@ -1,0 +1,155 @@
+"""Benchmark of the CPU rasteriser: one full training step and forward-only render, on the scene of
+docs/cpu-rasterizer.md. Prints a table and writes bench/results/raster.json.
+
+    python bench/raster.py            # headline configs, sweeps at reduced range (~2-3 min)
+    python bench/raster.py --full     # sweeps 10k..400k Gaussians and 128^2..1024^2
+
+A step = projection + SH + binning + forward + L1 loss + backward to every parameter (no optimiser).
+Times are medians of wall-clock; CPU time (both threads) is reported beside them because a shared
+machine inflates wall time.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch/numba load their OpenMP runtimes
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import platform  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numba  # noqa: E402
+import torch  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from station.ngs.raster import rasterization  # noqa: E402
+
+SH_C0 = 0.28209479177387814
+REFERENCE_LIMIT = 2_000 * 128 * 128  # Gaussians x pixels beyond which the dense reference is skipped
+
+
+def bench_scene(n: int, width: int, height: int, sh_degree: int = 3, seed: int = 0) -> dict:
+    """The shared benchmark scene: N Gaussians in [-1,1]^3, camera 4 units away, fx = fy = 1.5 W."""
+    g = torch.Generator().manual_seed(seed)
+    spacing = (8.0 / n) ** (1.0 / 3.0)
+    quats = torch.randn(n, 4, generator=g)
+    sh = 0.1 * torch.randn(n, (sh_degree + 1) ** 2, 3, generator=g)
+    sh[:, 0] = (torch.rand(n, 3, generator=g) - 0.5) / SH_C0
+    viewmat = torch.eye(4)
+    viewmat[2, 3] = 4.0
+    return {
+        "means": torch.rand(n, 3, generator=g) * 2 - 1,
+        "log_scales": math.log(0.5 * spacing) + 0.3 * torch.randn(n, 3, generator=g),
+        "quats": quats / quats.norm(dim=-1, keepdim=True),
+        "opacity_logits": torch.randn(n, generator=g),
+        "sh": sh,
+        "viewmats": viewmat[None],
+        "Ks": torch.tensor([[1.5 * width, 0, width / 2], [0, 1.5 * width, height / 2], [0, 0, 1.0]])[None],
+        "target": torch.rand(1, height, width, 3, generator=g),
+        "width": width, "height": height, "sh_degree": sh_degree,
+    }
+
+
+def _render(scene: dict, params: list[torch.Tensor], backend: str):
+    means, log_scales, quats, logits, sh = params
+    return rasterization(means, quats, log_scales.exp(), torch.sigmoid(logits), sh, scene["viewmats"], scene["Ks"],
+                         scene["width"], scene["height"], sh_degree=scene["sh_degree"], backend=backend)
+
+
+def _timed(fn, repeats: int) -> tuple[float, float]:
+    """Median wall and CPU milliseconds of fn() after one warm-up call."""
+    fn()
+    walls, cpus = [], []
+    for _ in range(repeats):
+        w, c = time.perf_counter(), time.process_time()
+        fn()
+        walls.append(time.perf_counter() - w)
+        cpus.append(time.process_time() - c)
+    return 1e3 * sorted(walls)[len(walls) // 2], 1e3 * sorted(cpus)[len(cpus) // 2]
+
+
+def measure(n: int, width: int, height: int, sh_degree: int, threads: int, repeats: int) -> dict:
+    scene = bench_scene(n, width, height, sh_degree)
+    params = [scene[k].clone().requires_grad_(True) for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
+
+    def step(backend: str = "cpu") -> None:
+        for p in params:
+            p.grad = None
+        img, _, _ = _render(scene, params, backend)
+        (img - scene["target"]).abs().mean().backward()
+
+    def forward() -> None:
+        with torch.no_grad():
+            _render(scene, params, "cpu")
+
+    step_ms, step_cpu_ms = _timed(step, repeats)
+    forward_ms, _ = _timed(forward, repeats)
+    reference_ms = None
+    if n * width * height <= REFERENCE_LIMIT:
+        reference_ms, _ = _timed(lambda: step("torch"), max(1, repeats // 3))
+    return {"gaussians": n, "width": width, "height": height, "sh_degree": sh_degree, "threads": threads,
+            "step_ms": round(step_ms, 2), "step_cpu_ms": round(step_cpu_ms, 2), "forward_ms": round(forward_ms, 2),
+            "reference_step_ms": None if reference_ms is None else round(reference_ms, 2),
+            "speedup_vs_reference": None if reference_ms is None else round(reference_ms / step_ms, 1)}
+
+
+def cold_start_ms() -> float:
+    """Wall time of a fresh interpreter importing the rasteriser and rendering once (warm numba cache)."""
+    code = ("import time; t = time.perf_counter(); import sys; sys.path.insert(0, 'BENCH');"
+            "from raster import bench_scene, _render; s = bench_scene(1000, 64, 64);"
+            "p = [s[k] for k in ('means', 'log_scales', 'quats', 'opacity_logits', 'sh')];"
+            "_render(s, p, 'cpu'); print((time.perf_counter() - t) * 1e3)").replace("BENCH", str(Path(__file__).parent))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return round(float(out.stdout.strip().splitlines()[-1]), 1)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--full", action="store_true", help="full sweeps (10k..400k, 128^2..1024^2)")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "raster.json")
+    args = parser.parse_args()
+    numba.set_num_threads(args.threads)
+    torch.set_num_threads(args.threads)
+    headline = [(20_000, 256, 256, 3), (100_000, 512, 512, 3), (2_000, 128, 128, 3)]
+    counts = [10_000, 20_000, 50_000, 100_000, 200_000, 400_000] if args.full else [10_000, 50_000]
+    sizes = [128, 256, 512, 1024] if args.full else [128, 512]
+    sweep = [(n, 256, 256, 3) for n in counts] + [(20_000, s, s, 3) for s in sizes]
+    configs, seen = [], set()
+    print(f"{'gaussians':>9} {'size':>9} {'sh':>2} {'thr':>3} {'step ms':>8} {'cpu ms':>8} {'fwd ms':>7} "
+          f"{'ref ms':>8} {'x ref':>6}")
+    for n, w, h, d in headline + sweep:
+        if (n, w, h, d) in seen:
+            continue
+        seen.add((n, w, h, d))
+        row = measure(n, w, h, d, args.threads, args.repeats if n * w * h <= 100_000 * 512 * 512 else 2)
+        row["role"] = "headline" if (n, w, h, d) in headline else "sweep"
+        configs.append(row)
+        ref_ms = "-" if row["reference_step_ms"] is None else f"{row['reference_step_ms']:.0f}"
+        ratio = "-" if row["speedup_vs_reference"] is None else f"{row['speedup_vs_reference']:.0f}"
+        print(f"{n:>9} {w:>4}x{h:<4} {d:>2} {args.threads:>3} {row['step_ms']:>8.1f} {row['step_cpu_ms']:>8.1f} "
+              f"{row['forward_ms']:>7.1f} {ref_ms:>8} {ratio:>6}", flush=True)
+    cold = cold_start_ms()
+    print(f"cold start (fresh process, warm numba cache, import + first 1k render): {cold:.0f} ms")
+    result = {
+        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+                    "cpu_count": os.cpu_count(), "load_average": os.getloadavg()},
+        "threads": args.threads, "torch": torch.__version__, "numba": numba.__version__,
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "cold_start_ms": cold, "configs": configs,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

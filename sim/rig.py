@@ -1,0 +1,143 @@
+"""A whole simulated rig, built on demand: emulated GRBL board, simulated PTP camera, stone world.
+
+The real drivers talk to it through their real code paths (pyserial on a `fakegrbl://` URL or a
+pty; pyusb through a pure-Python backend), so a scan on this rig exercises the same code as a
+scan on hardware. The camera renders the view at the emulated turntable's physical position at
+the moment of exposure. The simulated operator takes the stone off for the plates and puts it
+back. After a scan, `write_truth` records what really was in front of the camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from sim.grbl_links import FakeTurntable, start_fake_turntable
+from sim.ptp_camera import CaptureSettings, SimPtpCamera
+from sim.scene import World, frame_source
+from sim.sensor import SensorModel
+from sim.stone import Stone, load_stone_mesh, procedural_stone
+from sim.truth import write_truth_frame
+from sim.usb_backend import SimUsbBackend
+from station.capture.ptp import PtpCamera, open_ptp_camera
+from station.capture.still import PtpStillCamera
+from station.rig_geometry import RigGeometry
+from station.scanfolder import ScanFolder
+from station.turntable.grbl import Turntable, TurntableConfig
+
+
+def make_stone(spec: str | None, seed: int = 0) -> Stone:
+    """`spec` is a mesh path, a seed ("7"), or "look:seed" (e.g. "pale:3"); None gives the default stone."""
+    if spec is None:
+        return procedural_stone(seed)
+    if Path(spec).suffix.lower() in (".ply", ".obj", ".stl", ".glb", ".off"):
+        return load_stone_mesh(Path(spec), seed=seed)
+    look, _, number = spec.rpartition(":")
+    return procedural_stone(int(number), look=look or "grey")  # type: ignore[arg-type]
+
+
+class SimOperator:
+    """Does what the session asks, instantly: lifts the stone off for plates, puts it back for shots."""
+
+    def __init__(self, world: World):
+        self.world = world
+        self.requests: list[str] = []
+
+    def request(self, action: Literal["clear_turntable", "place_stone"], message: str) -> None:
+        self.requests.append(action)
+        self.world.stone_present = action == "place_stone"
+
+
+@dataclass
+class SimRig:
+    world: World
+    board: FakeTurntable
+    camera_device: SimPtpCamera
+    turntable: Turntable
+    ptp: PtpCamera
+    operator: SimOperator
+    shots: list[tuple[float, float, np.ndarray]] = field(default_factory=list)  # (elev, azim, mask) as exposed
+
+    @property
+    def camera(self) -> PtpStillCamera:
+        return PtpStillCamera(self.ptp)
+
+    def write_truth(self, scan: ScanFolder) -> None:
+        """sim_truth/ for every frame in the manifest, at the pose the stage physically had.
+
+        The board's step quantisation leaves the stage a few hundredths of a degree off the plan,
+        and the truth must say where the camera really was; masks rendered at exposure are reused.
+        Frames shot by an earlier (killed) run were not seen by this rig and are rendered anew.
+        """
+        for entry in scan.read_manifest():
+            elevation, azimuth, mask = entry.elevation_deg, entry.azimuth_deg, None
+            if entry.kind == "plate":
+                mask = np.zeros((self.world.rig.height, self.world.rig.width), dtype=bool)
+            else:
+                exposed = _nearest_shot(self.shots, entry.elevation_deg, entry.azimuth_deg)
+                if exposed is not None:
+                    elevation, azimuth, mask = exposed
+            was_present = self.world.stone_present
+            self.world.stone_present = entry.kind == "shot"
+            try:
+                write_truth_frame(scan.root, self.world, entry.file, elevation, azimuth, mask=mask)
+            finally:
+                self.world.stone_present = was_present
+
+    def close(self) -> None:
+        self.ptp.close()
+        self.turntable.close()
+        self.board.close()
+
+    def __enter__(self) -> "SimRig":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _nearest_shot(
+    shots: list[tuple[float, float, np.ndarray]], elevation_deg: float, azimuth_deg: float, tolerance_deg: float = 0.5
+) -> tuple[float, float, np.ndarray] | None:
+    """The exposure taken closest to a planned pose (latest wins, as a re-shot replaces a frame)."""
+    best, best_error = None, tolerance_deg
+    for shot in shots:
+        turn_error = abs((shot[1] - azimuth_deg + 180.0) % 360.0 - 180.0)
+        error = max(abs(shot[0] - elevation_deg), turn_error)
+        if error <= best_error:
+            best, best_error = shot, error
+    return best
+
+
+def build_sim_rig(
+    stone: Stone,
+    rig: RigGeometry = RigGeometry(),
+    *,
+    time_scale: float = 0.05,
+    route: Literal["url", "pty"] = "url",
+    seed: int = 0,
+) -> SimRig:
+    """Start the emulators, connect the real drivers to them, and return the assembled rig."""
+    world = World(stone, rig=rig)
+    board = start_fake_turntable(route, time_scale=time_scale, seed=seed)
+    render = frame_source(world, board.firmware.position, SensorModel(), seed)
+    shots: list[tuple[float, float, np.ndarray]] = []
+
+    def shoot(settings: CaptureSettings) -> tuple[bytes, str]:
+        data, name = render(settings)
+        if world.stone_present:
+            elevation, azimuth = render.last_pose
+            shots.append((elevation, azimuth, render.last.mask))
+        return data, name
+
+    camera_device = SimPtpCamera(shoot, time_scale=time_scale)
+    try:
+        turntable = Turntable.connect(board.port, TurntableConfig())
+    except BaseException:
+        board.close()
+        raise
+    ptp = open_ptp_camera(backend=SimUsbBackend(camera_device))
+    return SimRig(world, board, camera_device, turntable, ptp, SimOperator(world), shots)

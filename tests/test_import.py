@@ -1,0 +1,247 @@
+"""`station import`: nerfstudio / NeRF-synthetic, COLMAP and IDR (DTU) datasets into a posed scan folder."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from PIL import Image
+
+from station.errors import BadInputError
+from station.process.importers import ImportSettings, import_dataset
+from station.process.poses import write_point_ply
+from station.process.rig_model import rotation_angle_deg, umeyama
+from station.process.transforms import read_transforms
+from station.rig_geometry import look_at_c2w, opencv_to_opengl
+from station.scanfolder import ScanFolder
+
+W, H, F = 160, 120, 150.0
+K = np.array([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
+BALL_CENTRE, BALL_RADIUS = np.array([0.0, 0.0, 0.3]), 0.25  # source units
+
+
+def ring_cameras(count: int = 12, distance: float = 2.0, elevation_deg: float = 30.0) -> list[np.ndarray]:
+    """OpenCV camera-to-world poses on a ring around BALL_CENTRE, +z up."""
+    e = np.deg2rad(elevation_deg)
+    out = []
+    for a in np.linspace(0.0, 2 * np.pi, count, endpoint=False):
+        eye = BALL_CENTRE + distance * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        out.append(look_at_c2w(eye, BALL_CENTRE))
+    return out
+
+
+def ball_rgba(c2w: np.ndarray) -> np.ndarray:
+    """RGBA [H, W, 4] of a ball: alpha is its silhouette."""
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    d = np.stack([(u - K[0, 2]) / F, (v - K[1, 2]) / F, np.ones_like(u)], -1) @ c2w[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    oc = c2w[:3, 3] - BALL_CENTRE
+    b = d @ oc
+    hit = b * b - (oc @ oc - BALL_RADIUS**2) > 0
+    rgba = np.zeros((H, W, 4), np.uint8)
+    rgba[..., :3] = 40
+    rgba[hit] = (200, 150, 90, 255)
+    return rgba
+
+
+def write_nerfstudio(src: Path, cams: list[np.ndarray], synthetic: bool = False) -> None:
+    (src / "train").mkdir(parents=True)
+    frames = []
+    for i, c2w in enumerate(cams):
+        Image.fromarray(ball_rgba(c2w)).save(src / "train" / f"r_{i}.png")
+        path = f"./train/r_{i}" if synthetic else f"train/r_{i}.png"
+        frames.append({"file_path": path, "transform_matrix": opencv_to_opengl(c2w).tolist()})
+    data = {"frames": frames}
+    if synthetic:
+        data["camera_angle_x"] = 2 * np.arctan(0.5 * W / F)
+    else:
+        data.update(fl_x=F, fl_y=F, cx=W / 2, cy=H / 2, w=W, h=H)
+    (src / ("transforms_train.json" if synthetic else "transforms.json")).write_text(json.dumps(data))
+
+
+def test_nerfstudio_import_flips_opengl_poses_to_opencv_and_takes_masks_from_alpha(tmp_path):
+    cams = ring_cameras()
+    write_nerfstudio(tmp_path / "src", cams)
+    report = import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan")
+    assert report.frames == 12 and report.masks == "alpha" and report.orient == "keep"
+    scan = ScanFolder(tmp_path / "scan")
+    transforms = read_transforms(scan)
+    assert transforms.intrinsics.fx == pytest.approx(F) and transforms.intrinsics.width == W
+    for frame, c2w in zip(transforms.frames, cams):
+        np.testing.assert_allclose(frame.c2w, c2w, atol=1e-9)
+        mask = np.asarray(Image.open(scan.resolve_inside(frame.mask_path))) > 127
+        np.testing.assert_array_equal(mask, ball_rgba(c2w)[..., 3] > 127)
+    raw = json.loads(scan.transforms_path.read_text())
+    np.testing.assert_allclose(raw["frames"][0]["transform_matrix"], opencv_to_opengl(cams[0]), atol=1e-9)
+
+
+def test_masks_without_points_give_a_visual_hull_cloud_on_the_object(tmp_path):
+    write_nerfstudio(tmp_path / "src", ring_cameras(count=16))
+    report = import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan", ImportSettings(hull_resolution=64))
+    assert report.init_cloud == "visual_hull" and report.points > 300
+    body = (ScanFolder(tmp_path / "scan").poses_dir / "points3d.ply").read_bytes().split(b"end_header\n", 1)[1]
+    xyz = np.frombuffer(body, dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])["xyz"]
+    radial = np.linalg.norm(xyz - BALL_CENTRE, axis=1)
+    # A hull from one ring over-estimates the ball top and bottom, never the ring's equator.
+    assert np.median(radial) == pytest.approx(BALL_RADIUS, rel=0.25) and radial.min() > 0.8 * BALL_RADIUS
+
+
+def test_nerf_synthetic_camera_angle_x_and_suffixless_paths_with_explicit_units(tmp_path):
+    cams = ring_cameras()
+    write_nerfstudio(tmp_path / "src", cams, synthetic=True)
+    report = import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan", ImportSettings(units_to_m=0.1))
+    assert report.units_to_m == 0.1
+    transforms = read_transforms(ScanFolder(tmp_path / "scan"))
+    assert transforms.intrinsics.fx == pytest.approx(F) and transforms.intrinsics.cy == pytest.approx(H / 2)
+    for frame, c2w in zip(transforms.frames, cams):
+        np.testing.assert_allclose(frame.c2w[:3, 3], 0.1 * c2w[:3, 3], atol=1e-9)
+        np.testing.assert_allclose(frame.c2w[:3, :3], c2w[:3, :3], atol=1e-9)
+
+
+def colmap_world_cameras() -> tuple[list[np.ndarray], np.ndarray]:
+    """The ring seen in a typical COLMAP gauge: rotated (up is -y), shifted, in centimetres."""
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # z-up -> y-down world
+    cams = []
+    for c2w in ring_cameras():
+        moved = np.eye(4)
+        moved[:3, :3] = rot @ c2w[:3, :3]
+        moved[:3, 3] = 100.0 * rot @ c2w[:3, 3] + np.array([5.0, -3.0, 7.0])
+        cams.append(moved)
+    return cams, rot
+
+
+def write_colmap(src: Path, cams: list[np.ndarray], params: list[float] | None = None) -> None:
+    rec = pycolmap.Reconstruction()
+    model = "PINHOLE" if params is None else "OPENCV"
+    camera = pycolmap.Camera(model=model, width=W, height=H, params=params or [F, F, W / 2, H / 2], camera_id=1)
+    rec.add_camera_with_trivial_rig(camera)
+    (src / "images").mkdir(parents=True)
+    for i, c2w in enumerate(cams):
+        name = f"img{i:02d}.png"
+        Image.fromarray(ball_rgba(c2w)[..., :3]).save(src / "images" / name)
+        w2c = np.linalg.inv(c2w)
+        image = pycolmap.Image(name=name, camera_id=1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(w2c[:3, :4]))
+    rec.add_point3D(np.array([5.0, -3.0, 7.0]), pycolmap.Track(), np.array([10, 20, 30], dtype=np.uint8))
+    (src / "sparse" / "0").mkdir(parents=True)
+    rec.write_binary(str(src / "sparse" / "0"))
+
+
+def test_colmap_import_converts_units_and_keeps_axes_when_asked(tmp_path):
+    cams, _ = colmap_world_cameras()
+    write_colmap(tmp_path / "src", cams)
+    report = import_dataset(tmp_path / "src", "colmap", tmp_path / "scan", ImportSettings(units_to_m=0.01, orient="keep"))
+    assert report.init_cloud == "source" and report.points == 1 and report.masks == "none"
+    transforms = read_transforms(ScanFolder(tmp_path / "scan"))
+    assert [Path(f.file_path).name for f in transforms.frames][0] == "0000_img00.png"
+    for frame, c2w in zip(transforms.frames, cams):
+        np.testing.assert_allclose(frame.c2w[:3, 3], 0.01 * c2w[:3, 3], atol=1e-9)
+        assert rotation_angle_deg(frame.c2w[:3, :3], c2w[:3, :3]) < 1e-6
+
+
+def test_colmap_import_turns_the_camera_ring_upright_by_default(tmp_path):
+    cams, _ = colmap_world_cameras()
+    write_colmap(tmp_path / "src", cams)
+    report = import_dataset(tmp_path / "src", "colmap", tmp_path / "scan", ImportSettings(units_to_m=0.01))
+    assert report.orient == "ring"
+    frames = read_transforms(ScanFolder(tmp_path / "scan")).frames
+    centres = np.array([f.c2w[:3, 3] for f in frames])
+    truth = np.array([c[:3, 3] for c in ring_cameras()])
+    assert np.ptp(centres[:, 2]) < 1e-9 and centres[:, 2].min() > 0  # ring horizontal, cameras above
+    scale, rot, _ = umeyama(centres, truth)
+    assert scale == pytest.approx(1.0, abs=1e-9)  # metres
+    assert rotation_angle_deg(rot, np.eye(3)) < 90.0 and abs(rot[2, 2] - 1.0) < 1e-9  # only a turn about z
+
+
+def test_colmap_distorted_camera_is_refused_with_advice(tmp_path):
+    cams, _ = colmap_world_cameras()
+    write_colmap(tmp_path / "src", cams, params=[F, F, W / 2, H / 2, 0.1, 0.0, 0.0, 0.0])
+    with pytest.raises(BadInputError, match="undistort"):
+        import_dataset(tmp_path / "src", "colmap", tmp_path / "scan")
+
+
+def write_idr(src: Path, cams_mm: list[np.ndarray]) -> None:
+    (src / "image").mkdir(parents=True)
+    (src / "mask").mkdir()
+    arrays = {}
+    for i, c2w in enumerate(cams_mm):
+        rgba = ball_rgba(np.diag([1, 1, 1, 1.0]) @ np.block([[c2w[:3, :3], c2w[:3, 3:] / 1000], [0, 0, 0, 1]]))
+        Image.fromarray(rgba[..., :3]).save(src / "image" / f"{i:06d}.png")
+        Image.fromarray(rgba[..., 3]).save(src / "mask" / f"{i:03d}.png")
+        w2c = np.linalg.inv(c2w)
+        p = np.eye(4)
+        p[:3, :4] = K @ w2c[:3, :4]
+        arrays[f"world_mat_{i}"] = p
+        arrays[f"scale_mat_{i}"] = np.diag([300.0, 300.0, 300.0, 1.0])
+    np.savez(src / "cameras.npz", **arrays)
+
+
+def test_idr_import_decomposes_projection_matrices_and_converts_millimetres_to_metres(tmp_path):
+    cams_m = ring_cameras()
+    cams_mm = [np.block([[c[:3, :3], 1000.0 * c[:3, 3:]], [np.array([[0, 0, 0, 1.0]])]]) for c in cams_m]
+    write_idr(tmp_path / "src", cams_mm)
+    report = import_dataset(tmp_path / "src", "idr", tmp_path / "scan", ImportSettings(orient="keep"))
+    assert report.units_to_m == 0.001 and report.masks == "files"
+    transforms = read_transforms(ScanFolder(tmp_path / "scan"))
+    assert transforms.intrinsics.fx == pytest.approx(F) and transforms.intrinsics.cx == pytest.approx(W / 2)
+    for frame, c2w in zip(transforms.frames, cams_m):
+        np.testing.assert_allclose(frame.c2w[:3, 3], c2w[:3, 3], atol=1e-9)
+        assert rotation_angle_deg(frame.c2w[:3, :3], c2w[:3, :3]) < 1e-6
+
+
+def test_a_source_path_escaping_its_folder_is_refused_naming_the_field(tmp_path):
+    write_nerfstudio(tmp_path / "src", ring_cameras(count=3))
+    data = json.loads((tmp_path / "src" / "transforms.json").read_text())
+    data["frames"][1]["file_path"] = "../outside.png"
+    (tmp_path / "src" / "transforms.json").write_text(json.dumps(data))
+    with pytest.raises(BadInputError, match=r"frames\[1\]\.file_path.*outside"):
+        import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan")
+
+
+def test_missing_focal_length_is_refused_naming_the_field(tmp_path):
+    write_nerfstudio(tmp_path / "src", ring_cameras(count=3))
+    data = json.loads((tmp_path / "src" / "transforms.json").read_text())
+    del data["fl_x"]
+    (tmp_path / "src" / "transforms.json").write_text(json.dumps(data))
+    with pytest.raises(BadInputError, match="'fl_x'"):
+        import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan")
+
+
+def test_unknown_format_is_refused(tmp_path):
+    with pytest.raises(BadInputError, match="unknown format 'ply'"):
+        import_dataset(tmp_path, "ply", tmp_path / "scan")  # type: ignore[arg-type]
+
+
+def test_tampered_transforms_json_is_refused_on_read(tmp_path):
+    write_nerfstudio(tmp_path / "src", ring_cameras(count=3))
+    import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan")
+    scan = ScanFolder(tmp_path / "scan")
+    good = json.loads(scan.transforms_path.read_text())
+    bad_path = json.loads(json.dumps(good))
+    bad_path["frames"][0]["mask_path"] = "/etc/passwd"
+    scan.transforms_path.write_text(json.dumps(bad_path))
+    with pytest.raises(BadInputError, match="outside the scan folder"):
+        read_transforms(scan)
+    bad_pose = json.loads(json.dumps(good))
+    bad_pose["frames"][2]["transform_matrix"][0][0] = 3.0
+    scan.transforms_path.write_text(json.dumps(bad_pose))
+    with pytest.raises(BadInputError, match=r"frames\[2\]\.transform_matrix: upper 3x3 is not a rotation"):
+        read_transforms(scan)
+    bad_size = dict(good, w=-4)
+    scan.transforms_path.write_text(json.dumps(bad_size))
+    with pytest.raises(BadInputError, match="'w' must be"):
+        read_transforms(scan)
+
+
+def test_point_ply_is_binary_with_colours(tmp_path):
+    xyz = np.array([[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]])
+    rgb = np.array([[1, 2, 3], [250, 251, 252]], dtype=np.uint8)
+    write_point_ply(tmp_path / "p.ply", xyz, rgb)
+    head, body = (tmp_path / "p.ply").read_bytes().split(b"end_header\n", 1)
+    assert b"element vertex 2" in head and b"property uchar red" in head
+    rec = np.frombuffer(body, dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])
+    np.testing.assert_array_equal(rec["xyz"], xyz.astype(np.float32))
+    np.testing.assert_array_equal(rec["rgb"], rgb)

@@ -1,0 +1,208 @@
+"""The trainer, its strategies and its scan-folder I/O, on a tiny sphere scene (32x32 views)."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from station.errors import BadInputError, TrainingError
+from station.ngs.dataset import OPENGL_TO_OPENCV, load_scene
+from station.ngs.gaussians import Gaussians, rgb_to_sh
+from station.ngs.infill import InfillConfig
+from station.ngs.losses import LossConfig, alpha_losses
+from station.ngs.ngs_schedule import NGSConfig
+from station.ngs.pipeline import write_model
+from station.ngs.raster import rasterization
+from station.ngs.sos import evaluate_scan
+from station.ngs.strategy import DefaultStrategy, DensifyConfig
+from station.ngs.trainer import TrainConfig, Trainer
+from test_ngs_infill import ring_cameras, sphere_surface
+
+TINY = TrainConfig(
+    method="ngs", steps=60, sh_degree=1, checkpoint_every=20, seed=3,
+    ngs=NGSConfig(infill=InfillConfig(levels=(8, 16), erosion_iters=(1, 2), prune_downscale=1)),
+)
+
+
+def write_sphere_scan(root, masks: bool = True) -> list[np.ndarray]:
+    """A posed scan folder of a striped opaque sphere; returns the true OpenCV viewmats."""
+    s = sphere_surface()
+    n = len(s["means"])
+    stripes = (torch.sin(6 * s["means"][:, 2]) > 0).float()[:, None]
+    rgb = 0.2 + 0.6 * stripes * torch.tensor([1.0, 0.6, 0.2]) + 0.1
+    colors = torch.cat([rgb_to_sh(rgb)[:, None], torch.zeros(n, 3, 3)], dim=1)
+    (root / "images").mkdir(parents=True)
+    (root / "masks").mkdir()
+    (root / "poses").mkdir()
+    frames, viewmats = [], []
+    for k, cam in enumerate(ring_cameras()):
+        with torch.no_grad():
+            img, alpha, _ = rasterization(s["means"], s["quats"], s["scales"], s["opacities"], colors,
+                                          cam.viewmat[None], cam.K[None], 32, 32, sh_degree=1)
+        png = np.round(img[0].clamp(0, 1).numpy()[..., ::-1] * 65535).astype(np.uint16)
+        cv2.imwrite(str(root / "images" / f"f{k:02d}.png"), png)
+        cv2.imwrite(str(root / "masks" / f"f{k:02d}.png"), ((alpha[0, ..., 0] > 0.5).numpy() * 255).astype(np.uint8))
+        c2w_cv = np.linalg.inv(cam.viewmat.double().numpy())
+        frame = {"file_path": f"images/f{k:02d}.png", "transform_matrix": (c2w_cv @ OPENGL_TO_OPENCV).tolist()}
+        if masks:
+            frame["mask_path"] = f"masks/f{k:02d}.png"
+        frames.append(frame)
+        viewmats.append(cam.viewmat.numpy())
+    points = s["means"].numpy() * 1.05 + np.random.default_rng(0).normal(0, 0.02, (n, 3))
+    ply = "ply\nformat ascii 1.0\nelement vertex %d\nproperty float x\nproperty float y\nproperty float z\nend_header\n" % n
+    (root / "poses" / "cloud.ply").write_text(ply + "".join(f"{x} {y} {z}\n" for x, y, z in points))
+    K = ring_cameras()[0].K
+    meta = {"fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]), "w": 32,
+            "h": 32, "ply_file_path": "poses/cloud.ply", "frames": frames}
+    (root / "poses" / "transforms.json").write_text(json.dumps(meta))
+    return viewmats
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scan")
+    return root, write_sphere_scan(root)
+
+
+def test_dataset_turns_nerfstudio_poses_into_opencv_viewmats_and_holds_out_every_eighth(scan):
+    root, viewmats = scan
+    scene = load_scene(root)
+    assert len(scene.test) == 2 and len(scene.train) == 12  # frames 0 and 8 of 14
+    np.testing.assert_allclose(scene.test[1].viewmat.numpy(), viewmats[8], atol=1e-5)
+    assert scene.test[0].image.shape == (32, 32, 3) and scene.test[0].mask.shape == (32, 32)
+    assert scene.scene_scale == pytest.approx(1.1 * 6.0 * math.cos(math.radians(15)), rel=0.3)
+
+
+def test_paths_escaping_the_scan_folder_are_refused_naming_the_field(tmp_path):
+    write_sphere_scan(tmp_path)
+    meta = json.loads((tmp_path / "poses" / "transforms.json").read_text())
+    meta["frames"][3]["mask_path"] = "../../etc/passwd"
+    (tmp_path / "poses" / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(BadInputError, match="frame 3.*outside the scan folder"):
+        load_scene(tmp_path)
+
+
+def make_strategy_params(scales: list[float], opacities: list[float]):
+    n = len(scales)
+    params = {
+        "means": torch.nn.Parameter(torch.zeros(n, 3)),
+        "scales": torch.nn.Parameter(torch.tensor(scales).log()[:, None].repeat(1, 3)),
+        "quats": torch.nn.Parameter(torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1)),
+        "opacities": torch.nn.Parameter(torch.logit(torch.tensor(opacities))),
+        "sh0": torch.nn.Parameter(torch.zeros(n, 1, 3)),
+        "shN": torch.nn.Parameter(torch.zeros(n, 3, 3)),
+    }
+    optimizers = {k: torch.optim.Adam([p], lr=1e-3) for k, p in params.items()}
+    return params, optimizers
+
+
+def refine_once(params, optimizers, grad_norms: list[float]):
+    """One refine step of a strategy with refinement every step, fed these 2D gradients."""
+    cfg = DensifyConfig(refine_start_iter=0, refine_every=1, reset_every=1000, refine_stop_iter=1000)
+    strategy = DefaultStrategy(cfg, scene_scale=1.0)
+    means2d = torch.zeros(1, len(grad_norms), 2, requires_grad=True)
+    means2d.grad = torch.tensor(grad_norms)[None, :, None].repeat(1, 1, 2) / math.sqrt(2) / 16  # undo x W/2
+    info = {"means2d": means2d, "radii": torch.ones(1, len(grad_norms)), "width": 32, "height": 32}
+    strategy.step_post_backward(params, optimizers, step=1, info=info)
+
+
+def test_densification_clones_small_splits_large_and_prunes_transparent_gaussians():
+    params, optimizers = make_strategy_params(scales=[0.005, 0.5, 0.005, 0.005], opacities=[0.5, 0.5, 0.5, 0.001])
+    refine_once(params, optimizers, grad_norms=[1e-3, 1e-3, 1e-5, 1e-5])
+    scales = torch.exp(params["scales"].detach()).max(dim=-1).values.sort().values
+    # kept small #2, small #0 and its clone, two halves of the split large one; #3 pruned
+    torch.testing.assert_close(scales, torch.tensor([0.005, 0.005, 0.005, 0.5 / 1.6, 0.5 / 1.6]))
+    assert all(len(p) == 5 for p in params.values())
+    assert optimizers["means"].param_groups[0]["params"][0] is params["means"]
+
+
+def test_loss_terms_vanish_for_a_perfect_alpha_and_switch_off_by_weight():
+    mask = torch.zeros(16, 16)
+    mask[4:12, 4:12] = 1
+    assert {k: float(v) for k, v in alpha_losses(mask, mask, LossConfig()).items()} == {"bg": 0.0, "fg": 0.0}
+    assert float(alpha_losses(torch.zeros(16, 16), mask, LossConfig())["fg"]) == 1.0
+    assert set(alpha_losses(mask, mask, LossConfig(fg_weight=0.0))) == {"bg"}
+
+
+def test_ngs_phases_freeze_the_surface_then_the_noise_and_recolour_every_step(scan, tmp_path):
+    trainer = Trainer(load_scene(scan[0]), TINY, tmp_path)
+    ngs = trainer.ngs
+    for step in range(ngs.build_step):
+        trainer.train_step(step)
+    trainer.train_step(ngs.build_step)
+    assert len(ngs.infill) > 0
+    surface = {k: v.detach().clone() for k, v in trainer.model.params.items()}
+    moments = {k: opt.state[trainer.model.params[k]]["exp_avg"].clone() for k, opt in trainer.optimizers.items()}
+    logits = ngs.params["opacities"].detach().clone()
+    colors = [ngs.colors.clone()]
+    for step in range(ngs.build_step + 1, ngs.freeze_step):
+        trainer.train_step(step)
+        colors.append(ngs.colors.clone())
+    for name, value in trainer.model.params.items():
+        torch.testing.assert_close(value.detach(), surface[name], rtol=0, atol=0)
+        torch.testing.assert_close(trainer.optimizers[name].state[value]["exp_avg"], moments[name], rtol=0, atol=0)
+    assert not torch.equal(ngs.params["opacities"].detach()[: len(logits)], logits) or len(logits) != len(ngs.infill)
+    noise_means = ngs.infill.means.clone()
+    for step in range(ngs.freeze_step, ngs.freeze_step + 3):
+        trainer.train_step(step)
+        colors.append(ngs.colors.clone())
+    assert torch.equal(ngs.infill.means, noise_means) and not ngs.params
+    assert bool((ngs.noise(4)["opacities"] == 1).all())
+    changed = [not torch.equal(a, b) for a, b in zip(colors, colors[1:]) if len(a) == len(b)]
+    assert changed and all(changed)
+    assert trainer.optimizers["means"].param_groups[0]["lr"] == pytest.approx(
+        TINY.lr_means * trainer.scene.scene_scale * 0.01 ** (2 / (TINY.steps - ngs.freeze_step)))
+
+
+def test_a_nan_parameter_stops_training_naming_the_step_and_tensor(scan, tmp_path):
+    trainer = Trainer(load_scene(scan[0]), TINY, tmp_path)
+    trainer.train_step(0)
+    trainer.model.params["scales"].data[5, 1] = float("nan")
+    with pytest.raises(TrainingError, match="step 1: parameter scales holds NaN"):
+        trainer.train_step(1)
+
+
+def test_a_resumed_run_ends_with_the_same_parameters_as_an_uninterrupted_one(scan, tmp_path):
+    scene = load_scene(scan[0])
+    whole = Trainer(scene, TINY, tmp_path / "whole")
+    whole.run()
+    killed = Trainer(scene, replace(TINY, steps=TINY.steps), tmp_path / "resumed")
+    for step in range(45):  # past the infill build; the last checkpoint is at step 40
+        killed.train_step(step)
+        killed.step = step + 1
+        if killed.step % TINY.checkpoint_every == 0:
+            killed.save_checkpoint()
+    resumed = Trainer(scene, TINY, tmp_path / "resumed")
+    report = resumed.run()
+    assert report.resumed_from == 40
+    assert len(resumed.model) == len(whole.model)
+    for name, value in whole.model.params.items():
+        torch.testing.assert_close(resumed.model.params[name], value)
+    torch.testing.assert_close(resumed.ngs.infill.means, whole.ngs.infill.means)
+
+
+def test_a_checkpoint_from_another_configuration_is_refused(scan, tmp_path):
+    scene = load_scene(scan[0])
+    Trainer(scene, replace(TINY, steps=20), tmp_path).run()
+    with pytest.raises(TrainingError, match="another training configuration"):
+        Trainer(scene, TINY, tmp_path).run()
+
+
+def test_trained_ngs_model_is_written_and_scored_end_to_end(tmp_path):
+    write_sphere_scan(tmp_path)
+    cfg = replace(TINY, steps=300, checkpoint_every=300)
+    trainer = Trainer(load_scene(tmp_path), cfg, tmp_path / "model")
+    report = trainer.run()
+    write_model(trainer, report)
+    assert report.num_infill > 0 and (tmp_path / "model" / "infill.pt").is_file()
+    result = evaluate_scan(tmp_path)
+    assert result["infill_source"] == "ngs"
+    assert result["psnr"] > 20
+    assert result["sos"] > 0.5
+    assert len(list((tmp_path / "model" / "sos").glob("*.png"))) == 2
