@@ -20,6 +20,7 @@ from station.scanfolder import ScanFolder
 
 W, H, F = 160, 120, 150.0
 K = np.array([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
+QUICK = ImportSettings(hull_resolution=24)  # where the starting cloud is not what is under test
 BALL_CENTRE, BALL_RADIUS = np.array([0.0, 0.0, 0.3]), 0.25  # source units
 
 
@@ -65,7 +66,7 @@ def write_nerfstudio(src: Path, cams: list[np.ndarray], synthetic: bool = False)
 def test_nerfstudio_import_flips_opengl_poses_to_opencv_and_takes_masks_from_alpha(tmp_path):
     cams = ring_cameras()
     write_nerfstudio(tmp_path / "src", cams)
-    report = import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan")
+    report = import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan", QUICK)
     assert report.frames == 12 and report.masks == "alpha" and report.orient == "keep"
     scan = ScanFolder(tmp_path / "scan")
     transforms = read_transforms(scan)
@@ -92,7 +93,7 @@ def test_masks_without_points_give_a_visual_hull_cloud_on_the_object(tmp_path):
 def test_nerf_synthetic_camera_angle_x_and_suffixless_paths_with_explicit_units(tmp_path):
     cams = ring_cameras()
     write_nerfstudio(tmp_path / "src", cams, synthetic=True)
-    report = import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan", ImportSettings(units_to_m=0.1))
+    report = import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan", ImportSettings(units_to_m=0.1, hull_resolution=24))
     assert report.units_to_m == 0.1
     transforms = read_transforms(ScanFolder(tmp_path / "scan"))
     assert transforms.intrinsics.fx == pytest.approx(F) and transforms.intrinsics.cy == pytest.approx(H / 2)
@@ -183,7 +184,7 @@ def test_idr_import_decomposes_projection_matrices_and_converts_millimetres_to_m
     cams_m = ring_cameras()
     cams_mm = [np.block([[c[:3, :3], 1000.0 * c[:3, 3:]], [np.array([[0, 0, 0, 1.0]])]]) for c in cams_m]
     write_idr(tmp_path / "src", cams_mm)
-    report = import_dataset(tmp_path / "src", "idr", tmp_path / "scan", ImportSettings(orient="keep"))
+    report = import_dataset(tmp_path / "src", "idr", tmp_path / "scan", ImportSettings(orient="keep", hull_resolution=24))
     assert report.units_to_m == 0.001 and report.masks == "files"
     transforms = read_transforms(ScanFolder(tmp_path / "scan"))
     assert transforms.intrinsics.fx == pytest.approx(F) and transforms.intrinsics.cx == pytest.approx(W / 2)
@@ -217,7 +218,7 @@ def test_unknown_format_is_refused(tmp_path):
 
 def test_tampered_transforms_json_is_refused_on_read(tmp_path):
     write_nerfstudio(tmp_path / "src", ring_cameras(count=3))
-    import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan")
+    import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan", QUICK)
     scan = ScanFolder(tmp_path / "scan")
     good = json.loads(scan.transforms_path.read_text())
     bad_path = json.loads(json.dumps(good))

@@ -105,7 +105,7 @@ def test_check_flags_area_jump_border_contact_and_full_frame() -> None:
 sim_scene = pytest.importorskip("sim.scene")
 
 
-def _sim_pair(look: str, elevation: float, size: tuple[int, int] = (640, 480)):
+def _sim_pair(look: str, elevation: float, folder: Path, size: tuple[int, int] = (640, 480)):
     from sim.dng import dng_bytes
     from sim.sensor import SensorModel
     from sim.stone import procedural_stone
@@ -120,10 +120,9 @@ def _sim_pair(look: str, elevation: float, size: tuple[int, int] = (640, 480)):
     out = []
     for radiance, name in ((shot.radiance, "shot"), (plate.radiance * 1.015, "plate")):
         data = dng_bytes(sensor.expose(radiance, 0.01, 100, rng), sensor)
-        path = Path(f"/tmp/station-test-{look}-{name}-{elevation}.dng")
+        path = folder / f"{look}-{name}.dng"
         path.write_bytes(data)
         out.append(develop_raw(path, DevelopSettings()).linear)
-        path.unlink()
     return out[0], out[1], shot.mask
 
 
@@ -141,14 +140,14 @@ def _sim_pair(look: str, elevation: float, size: tuple[int, int] = (640, 480)):
         ),
     ],
 )
-def test_sim_stone_mask_iou_meets_the_issue_target(look: str) -> None:
-    shot, plate, truth = _sim_pair(look, 45.0)
+def test_sim_stone_mask_iou_meets_the_issue_target(look: str, tmp_path: Path) -> None:
+    shot, plate, truth = _sim_pair(look, 45.0, tmp_path)
     assert iou(compute_mask(shot, plate, MaskSettings()), truth) >= 0.98
 
 
 @pytest.mark.slow
-def test_sim_speckled_stone_mask_stays_above_its_current_floor() -> None:
-    shot, plate, truth = _sim_pair("speckled", 45.0)
+def test_sim_speckled_stone_mask_stays_above_its_current_floor(tmp_path: Path) -> None:
+    shot, plate, truth = _sim_pair("speckled", 45.0, tmp_path)
     assert iou(compute_mask(shot, plate), truth) >= 0.95
 
 

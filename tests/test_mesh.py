@@ -18,6 +18,7 @@ from station.export.mesh import (
     build_watertight_mesh,
     check_mesh,
     render_depth_maps,
+    resample_to_grid,
     tsdf_fuse,
     vertex_colors_from_splats,
     write_mesh_files,
@@ -187,6 +188,17 @@ def test_broken_meshes_are_reported_with_their_problems():
     inverted = trimesh.creation.box()
     inverted.invert()
     assert any("not positive" in p for p in check_mesh(inverted).problems())
+
+
+def test_occupancy_resamples_onto_the_mesh_grid_and_is_empty_outside_its_source():
+    source = VoxelGrid((0.0, 0.0, 0.0), 0.01, (10, 10, 10))
+    values = np.zeros(source.shape, np.float32)
+    values[:5] = 1.0  # x <= 0.04 occupied
+    target = VoxelGrid((0.005, 0.0, 0.0), 0.01, (12, 10, 10))
+    out = resample_to_grid(values, source, target)
+    assert out[3, 5, 5] == pytest.approx(1.0)  # x = 0.035
+    assert out[4, 5, 5] == pytest.approx(0.5)  # x = 0.045, half-way across the boundary
+    assert out[11, 5, 5] == 0.0  # x = 0.115, beyond the source grid
 
 
 def test_empty_field_is_refused_with_a_typed_error():

@@ -69,6 +69,7 @@ class Operator(Protocol):
 class SessionConfig:
     move_timeout_s: float = 120.0
     device_retries: int = 2  # recoveries tried per frame before the fault goes to the operator
+    overlap_motion: bool = True  # move to the next pose while this frame downloads (off only to measure the gain)
     bytes_per_frame_hint: int = 0  # 0: estimate from the rig's resolution
 
 
@@ -139,12 +140,15 @@ class ScanSession:
         for k, frame in enumerate(frames):
             pending = self._trigger(frame, summary)
             following = frames[k + 1] if k + 1 < len(frames) else None
-            move = self._start_move(following, summary) if following else None
+            overlap = following is not None and self.config.overlap_motion
+            move = self._start_move(following, summary) if overlap else None
             data = pending.download()
             self._store(frame, data, entries)
+            if following is not None and not overlap:
+                move = self._start_move(following, summary)
             summary.shot.append(frame.file)
             self.progress(len(entries), total, frame.file)
-            if move is not None:
+            if following is not None:
                 self._finish_move(move, following, summary)
 
     def _trigger(self, frame: PlannedFrame, summary: ScanSummary) -> PendingFrame:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import fast_simplification
+import manifold3d
 import numpy as np
 import trimesh
 from scipy import ndimage
@@ -201,8 +202,6 @@ class MeshCheck:
 
 def check_mesh(mesh: trimesh.Trimesh) -> MeshCheck:
     """trimesh and manifold3d checks; manifold3d silently splits pinched vertices, so count them."""
-    import manifold3d
-
     mesh = mesh.copy()
     mesh.remove_unreferenced_vertices()
     manifold = manifold3d.Manifold(

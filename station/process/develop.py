@@ -154,7 +154,9 @@ def _tile(tile: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return np.tile(tile, (h // 2 + 1, w // 2 + 1))[:h, :w]
 
 
-def _signal_stats(mosaic: np.ndarray, black: np.ndarray, white: float, settings: DevelopSettings) -> tuple[float, float]:
+def _signal_stats(
+    mosaic: np.ndarray, black: np.ndarray, white: float, settings: DevelopSettings
+) -> tuple[float, float]:
     """(fraction of clipped photosites, 99th percentile of black-subtracted signal in [0, 1])."""
     tiled_black = _tile(black, mosaic.shape)  # [H, W]
     clipped = float(np.mean(mosaic >= settings.clip_level * white))
@@ -235,7 +237,12 @@ def develop_raw(path: Path, settings: DevelopSettings, wb: WhiteBalance | None =
     )
 
 
-_PATTERN_INDEX = {"RGGB": [[0, 1], [1, 2]], "BGGR": [[2, 1], [1, 0]], "GRBG": [[1, 0], [2, 1]], "GBRG": [[1, 2], [0, 1]]}
+_PATTERN_INDEX = {
+    "RGGB": [[0, 1], [1, 2]],
+    "BGGR": [[2, 1], [1, 0]],
+    "GRBG": [[1, 0], [2, 1]],
+    "GBRG": [[1, 2], [0, 1]],
+}
 # OpenCV names Bayer codes after the second row's 2nd/3rd pixels, i.e. one diagonal step off the
 # top-left tile: an RGGB sensor is COLOR_BayerBG2RGB. Checked by a round-trip test.
 _CV_CODE = {

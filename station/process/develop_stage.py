@@ -72,7 +72,7 @@ def _exposure(entry: ManifestEntry) -> float:
     return entry.exposure_s * entry.iso if entry.exposure_s > 0 and entry.iso > 0 else 0.0
 
 
-def _scan_white_balance(scan: ScanFolder, plates: list[ManifestEntry], settings: ProcessSettings) -> WhiteBalance:
+def _scan_white_balance(scan: ScanFolder, plates: list[ManifestEntry]) -> WhiteBalance:
     """Median of the per-plate backdrop balances: one balance for the whole scan, so colours agree."""
     camera = DevelopSettings(demosaic="LINEAR", output_space="camera", max_width=640)
     gains = []
@@ -103,7 +103,7 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
     plates = [e for e in readable if e.kind == "plate"]
     if not plates:
         raise ScanFolderError(f"{scan.root}: no readable plate frame; masks need one empty plate per elevation")
-    wb = _scan_white_balance(scan, plates, settings) if settings.white_balance == "plate" else None
+    wb = _scan_white_balance(scan, plates) if settings.white_balance == "plate" else None
     exposures = [_exposure(e) for e in readable if _exposure(e) > 0]
     reference = float(np.median(exposures)) if exposures else 0.0
 

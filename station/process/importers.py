@@ -15,7 +15,6 @@ Conventions read:
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,7 +30,7 @@ from station.process.poses import write_point_ply
 from station.process.rig_model import apply_similarity
 from station.process.sfm import Intrinsics
 from station.process.transforms import MAX_FRAMES, PosedFrame, Transforms, opengl_to_opencv, write_transforms
-from station.process.visual_hull import carve, convergence_point
+from station.process.visual_hull import carve, ring_frame
 from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
 
 Format = Literal["nerfstudio", "colmap", "idr"]
@@ -233,18 +232,6 @@ def read_idr(src: Path) -> SourceDataset:
 READERS = {"nerfstudio": read_nerfstudio, "colmap": read_colmap, "idr": read_idr}
 
 
-def ring_frame(c2ws: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation (rows = new axes) and origin putting z along the camera ring's normal, cameras above."""
-    centres = np.array([c[:3, 3] for c in c2ws])
-    target = convergence_point(c2ws)
-    _, _, vt = np.linalg.svd(centres - centres.mean(0))
-    up = vt[2] if vt[2] @ (centres.mean(0) - target) >= 0 else -vt[2]
-    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = helper - (helper @ up) * up
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(up, x), up]), target
-
-
 def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings | None = None) -> ImportReport:
     """Read `src` in format `fmt`, convert to metres and station axes, and write scan folder `out`."""
     started = time.monotonic()
@@ -318,6 +305,3 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
     atomic_write_json(scan.poses_dir / "report.json", report.to_dict())
     return report
 
-
-def load_json(path: Path) -> dict:
-    return json.loads(Path(path).read_text(encoding="utf-8"))

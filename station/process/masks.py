@@ -7,9 +7,12 @@ Three steps (pipeline.md measured why each is needed):
    it, or its chromaticity moves (shadows only darken and keep chroma). Thresholds follow
    the photon noise measured on the border. The sparse cues are closed into one blob and
    its convex hull (stones are nearly convex) is the first guess.
-2. GrabCut, seeded from that guess as a trimap, on a crop around the object: it recovers
-   pale stones whose colour matches the backdrop, where differencing alone fails.
+2. GrabCut, seeded from that guess as a trimap, on a crop around the object: it fills in
+   what the sparse cues of a pale stone miss and puts the boundary on the image edge.
 3. Cleaning: largest connected component, holes filled.
+Known limit: where a pale stone's shaded side is darker than the plate behind it with the
+plate's chroma, nothing in the pixels tells it from a contact shadow, and it is lost
+(low elevations, where the stone stands against the backdrop; see tests/test_masks.py).
 `check_masks` then flags masks that are empty, fill the frame, touch the frame border, or
 jump in area against their neighbours on the same turntable ring.
 """
@@ -191,7 +194,9 @@ def refine_grabcut(shot: np.ndarray, sure: np.ndarray, seed: np.ndarray, setting
     return out
 
 
-def compute_mask(shot_linear: np.ndarray, plate_linear: np.ndarray, settings: MaskSettings = MaskSettings()) -> np.ndarray:
+def compute_mask(
+    shot_linear: np.ndarray, plate_linear: np.ndarray, settings: MaskSettings = MaskSettings()
+) -> np.ndarray:
     """Stone mask [H, W] bool for a developed shot and the clean plate of the same elevation."""
     shot, plate = shot_linear.astype(np.float32), plate_linear.astype(np.float32)
     sure = difference_mask(shot, plate, settings)
@@ -220,6 +225,8 @@ def check_masks(
             # flagged, and its normal neighbours are not dragged along
             pair = (areas[i - 1], areas[(i + 1) % len(masks)])
             if areas[i] > max(pair) * settings.max_area_jump or areas[i] * settings.max_area_jump < min(pair):
-                check.reasons.append(f"area {areas[i]:.2%} jumps against its neighbouring views ({pair[0]:.2%}, {pair[1]:.2%})")
+                check.reasons.append(
+                    f"area {areas[i]:.2%} jumps against its neighbouring views ({pair[0]:.2%}, {pair[1]:.2%})"
+                )
         checks.append(check)
     return checks

@@ -23,7 +23,7 @@ from station.errors import ScanFolderError, StationError
 from station.process import sfm
 from station.process.rig_model import RigModel, apply_similarity, rotation_angle_deg, umeyama
 from station.process.transforms import PosedFrame, Transforms, write_transforms
-from station.process.visual_hull import carve, convergence_point
+from station.process.visual_hull import carve, ring_frame
 from station.rig_geometry import RigGeometry
 from station.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_json, atomic_write_with
 
@@ -166,7 +166,7 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             rec = sfm.map_incremental(database, scan.images_dir, work / "mapped", fallback, False, intr is not None)
             if rec is None or rec.num_reg_images() < 3:
                 raise PosingError(f"{scan.root}: SfM registered {0 if rec is None else rec.num_reg_images()} views")
-            rec, scaled = _turntable_gauge(rec, scan_rig.orbit_radius_m if scan_rig else None)
+            rec, scaled = _turntable_gauge(rec, scan_rig)
             if not scaled:
                 flags.append("no rig in scan.json: scale is SfM units, not metres")
             intr = _intrinsics_of(rec, width, height)
@@ -237,22 +237,22 @@ def _intrinsics_of(rec: pycolmap.Reconstruction, width: int, height: int) -> sfm
     return sfm.Intrinsics(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
 
 
-def _turntable_gauge(rec: pycolmap.Reconstruction, radius_m: float | None) -> tuple[pycolmap.Reconstruction, bool]:
-    """Put a free SfM model into a turntable-like frame: z along the camera ring's normal, origin where
-    the cameras look, scale so the ring radius is `radius_m` (when known)."""
+def _turntable_gauge(rec: pycolmap.Reconstruction, rig: RigGeometry | None) -> tuple[pycolmap.Reconstruction, bool]:
+    """Put a free SfM model into a turntable-like frame: z along the camera ring's normal, cameras above.
+
+    With the scan's rig geometry the cameras' distance to where they look is the arm length and that
+    point sits at the aim height, which fixes scale and the plate-surface origin; without it the
+    origin is the look-at point and the scale stays SfM units.
+    """
     poses = list(sfm.registered_poses(rec).values())
     centres = np.array([p[:3, 3] for p in poses])
-    target = convergence_point(poses)
-    _, _, vt = np.linalg.svd(centres - centres.mean(0))
-    up = vt[2] if vt[2] @ (centres.mean(0) - target) >= 0 else -vt[2]  # cameras sit above what they look at
-    x = np.cross(np.array([0.0, 1.0, 0.0]) if abs(up[1]) < 0.9 else np.array([1.0, 0.0, 0.0]), up)
-    x /= np.linalg.norm(x)
-    rot = np.stack([x, np.cross(up, x), up])
-    rel = centres - target
-    radius = float(np.mean(np.linalg.norm(rel - np.outer(rel @ up, up), axis=1)))
-    scale = radius_m / radius if radius_m else 1.0
-    rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rot), -scale * rot @ target))
-    return rec, radius_m is not None
+    rot, target = ring_frame(poses)
+    scale, lift = 1.0, 0.0
+    if rig is not None:
+        scale = rig.orbit_radius_m / float(np.mean(np.linalg.norm(centres - target, axis=1)))
+        lift = rig.aim_height_m
+    rec.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rot), -scale * rot @ target + np.array([0, 0, lift])))
+    return rec, rig is not None
 
 
 def _write_outputs(scan: ScanFolder, rec: pycolmap.Reconstruction, refs: list[FrameRef],

@@ -1,5 +1,8 @@
 """Visual hull: a starting cloud carved from the masks when SfM finds too few points.
 
+Also the camera-set geometry it needs (where a ring of cameras looks, which way is up), shared
+with the pure-SfM gauge and the importers.
+
 A textureless stone gives SIFT almost nothing to match, but its silhouettes are still sharp
 and the rig poses are still exact, so carving a voxel grid with every mask gives a cloud that
 hugs the stone (from outside: concavities are filled) for the splats to start from.
@@ -22,6 +25,18 @@ def convergence_point(c2ws: list[np.ndarray]) -> np.ndarray:
         a += proj
         b += proj @ c2w[:3, 3]
     return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+def ring_frame(c2ws: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation (rows = new axes) and origin putting z along the camera ring's normal, cameras above."""
+    centres = np.array([c[:3, 3] for c in c2ws])
+    target = convergence_point(c2ws)
+    _, _, vt = np.linalg.svd(centres - centres.mean(0))
+    up = vt[2] if vt[2] @ (centres.mean(0) - target) >= 0 else -vt[2]
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = helper - (helper @ up) * up
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(up, x), up]), target
 
 
 def view_bounds(c2ws: list[np.ndarray], intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,134 @@
+"""Hard cases of the rasteriser, each with an asserted outcome, on both the numba and the reference backend."""
+
+import math
+
+import pytest
+import torch
+
+from station.errors import BadInputError
+from station.ngs.raster import pixel_contributors, rasterization
+
+BACKENDS = ["cpu", "torch"]
+
+
+def camera(width: int, height: int, focal: float = 40.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Identity pose (camera at the origin looking down +z) and a centred pinhole."""
+    K = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
+    return torch.eye(4)[None], K[None]
+
+
+def gaussians(means, scales, opacities, colors=None) -> list[torch.Tensor]:
+    means = torch.tensor(means, dtype=torch.float32).reshape(-1, 3)
+    n = means.shape[0]
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1)
+    scales = torch.tensor(scales, dtype=torch.float32).reshape(-1, 3).expand(n, 3).contiguous()
+    opacities = torch.tensor(opacities, dtype=torch.float32).reshape(-1).expand(n).contiguous()
+    colors = torch.ones(n, 3) if colors is None else torch.tensor(colors, dtype=torch.float32)
+    return [means, quats, scales, opacities, colors]
+
+
+def render(params, width=24, height=20, backend="cpu", **kwargs):
+    viewmats, Ks = camera(width, height)
+    return rasterization(*params, viewmats, Ks, width, height, backend=backend, **kwargs)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gaussians_at_inside_and_behind_the_near_plane_are_culled(backend):
+    params = gaussians([[0, 0, 0.5], [0, 0, 0.25], [0, 0, -1.0], [0, 0, 0.0]], [0.05, 0.05, 0.05], [0.9])
+    img, alpha, meta = render(params, backend=backend, near_plane=0.5)
+    assert meta["radii"].tolist() == [[0, 0, 0, 0]]
+    assert (alpha == 0).all() and (img == 0).all()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_gaussian_just_beyond_the_near_plane_is_drawn(backend):
+    params = gaussians([[0, 0, 0.55]], [0.02, 0.02, 0.02], [0.9])
+    _, alpha, meta = render(params, backend=backend, near_plane=0.5)
+    assert meta["radii"][0, 0] > 0 and alpha.max() > 0.5
+
+
+@pytest.mark.parametrize("scales", [[0.3, 0.0, 0.3], [0.0, 0.0, 0.4]], ids=["flat", "needle"])
+def test_degenerate_covariances_render_finite_and_match_the_reference(scales):
+    params = gaussians([[0, 0, 3.0], [0.2, 0.1, 4.0]], scales, [0.8])
+    outs = {}
+    for backend in BACKENDS:
+        leaves = [p.clone().requires_grad_(True) for p in params]
+        img, alpha, _ = render(leaves, backend=backend)
+        (img.sum() + alpha.sum()).backward()
+        outs[backend] = (img.detach(), alpha.detach(), [p.grad for p in leaves])
+    img, alpha, grads = outs["cpu"]
+    assert alpha.max() > 0.3, "the 0.3 px low-pass keeps a zero-thickness Gaussian visible"
+    assert all(torch.isfinite(g).all() for g in grads)
+    torch.testing.assert_close(img, outs["torch"][0], atol=1e-5, rtol=0)
+    torch.testing.assert_close(alpha, outs["torch"][1], atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_gaussian_covering_the_whole_image_reaches_every_pixel(backend):
+    params = gaussians([[0, 0, 2.0]], [50.0, 50.0, 50.0], [0.5])
+    _, alpha, _ = render(params, backend=backend)
+    torch.testing.assert_close(alpha, torch.full_like(alpha, 0.5), atol=1e-3, rtol=0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_alpha_saturates_at_099_and_compositing_stops_before_t_reaches_1e4(backend):
+    params = gaussians([[0, 0, 2.0], [0, 0, 2.5], [0, 0, 3.0]], [1.0, 1.0, 1.0], [1.0],
+                       colors=[[1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    params[3] = torch.tensor([1.0, 0.9, 1.0])
+    img, alpha, _ = render(params, width=16, height=16, backend=backend)
+    centre = (0, 8, 8)
+    # pixel centre (8.5, 8.5) is half a pixel off each mean; 2D variance = (f s / z)^2 + 0.3 low-pass
+    a2 = 0.9 * math.exp(-0.5 * 0.5 / ((40 * 1.0 / 2.5) ** 2 + 0.3))
+    # the first saturates at 0.99 (opacity 1); after the second T = 0.01 (1 - a2) ~ 1e-3, and the third
+    # (alpha 0.99) would bring T below 1e-4, so it is never composited
+    torch.testing.assert_close(alpha[centre].double(), torch.tensor([0.99 + 0.01 * a2], dtype=torch.float64),
+                               atol=1e-6, rtol=0)
+    torch.testing.assert_close(img[centre].double(), torch.tensor([0.99, 0.01 * a2, 0.0], dtype=torch.float64),
+                               atol=1e-6, rtol=0)
+    viewmats, Ks = camera(16, 16)
+    offsets, ids = pixel_contributors(*params[:4], viewmats[0], Ks[0], 16, 16, backend=backend)
+    pix = 8 * 16 + 8
+    assert ids[offsets[pix]:offsets[pix + 1]].tolist() == [0, 1]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_an_empty_scene_renders_the_background_with_empty_gradients(backend):
+    params = [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3)]
+    params = [p.requires_grad_(True) for p in params]
+    bg = torch.tensor([[0.1, 0.2, 0.3]])
+    img, alpha, meta = render(params, backend=backend, backgrounds=bg)
+    img.sum().backward()
+    assert (alpha == 0).all() and torch.equal(img, bg.expand(1, 20, 24, 3))
+    assert meta["means2d"].shape == (1, 0, 2) and params[0].grad.shape == (0, 3)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_single_pixel_image_renders_the_gaussian_in_front_of_it(backend):
+    params = gaussians([[0, 0, 2.0], [0, 0, 3.0]], [0.05, 0.05, 0.05], [0.5], colors=[[1, 0, 0], [0, 0, 1]])
+    img, alpha, _ = render(params, width=1, height=1, backend=backend)
+    assert img.shape == (1, 1, 1, 3)
+    torch.testing.assert_close(alpha[0, 0, 0], torch.tensor([0.75]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(img[0, 0, 0], torch.tensor([0.5, 0.0, 0.25]), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmats", "Ks", "backgrounds"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_nan_or_inf_in_any_input_is_a_bad_input_error_naming_it(name, bad):
+    means, quats, scales, opacities, colors = gaussians([[0, 0, 2.0]], [0.1, 0.1, 0.1], [0.5])
+    viewmats, Ks = camera(8, 8)
+    inputs = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+              "viewmats": viewmats, "Ks": Ks, "backgrounds": torch.zeros(1, 3)}
+    inputs[name] = inputs[name].clone()
+    inputs[name].view(-1)[0] = bad
+    with pytest.raises(BadInputError, match=rf"\b{name}\b contains NaN or inf"):
+        rasterization(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"], inputs["colors"],
+                      inputs["viewmats"], inputs["Ks"], 8, 8, backgrounds=inputs["backgrounds"])
+
+
+def test_log_scales_and_opacities_out_of_range_are_refused():
+    means, quats, scales, opacities, colors = gaussians([[0, 0, 2.0]], [0.1, 0.1, 0.1], [0.5])
+    viewmats, Ks = camera(8, 8)
+    with pytest.raises(BadInputError, match="scales must be linear"):
+        rasterization(means, quats, -scales, opacities, colors, viewmats, Ks, 8, 8)
+    with pytest.raises(BadInputError, match="opacities must lie in"):
+        rasterization(means, quats, scales, opacities + 1, colors, viewmats, Ks, 8, 8)
