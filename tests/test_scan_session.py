@@ -163,3 +163,14 @@ def test_sigkill_at_random_moments_then_rerun_ends_with_every_frame_once(tmp_pat
     _assert_complete(out, plan)
     lines = (out / "manifest.jsonl").read_text().splitlines()
     assert len(lines) == len(set(json.loads(line)["file"] for line in lines)) == 27
+
+
+@pytest.mark.slow
+def test_the_full_six_by_forty_plan_yields_240_shots_and_6_plates(tmp_path):
+    plan = ScanPlan()
+    summary, _, _ = _scan(tmp_path / "scan", plan)
+    _assert_complete(tmp_path / "scan", plan)
+    entries = ScanFolder(tmp_path / "scan").read_manifest()
+    assert sum(e.kind == "shot" for e in entries) == 240
+    assert sum(e.kind == "plate" for e in entries) == 6
+    assert len(summary.shot) == 246

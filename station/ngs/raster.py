@@ -199,7 +199,8 @@ class _Rasterize(torch.autograd.Function):
                 depths: Tensor, background: Tensor, width: int, height: int) -> tuple[Tensor, Tensor]:
         arrays = [t.detach().contiguous().numpy() for t in (means2d, conics, feats, opacities)]
         fast = means2d.dtype == torch.float32
-        bins = _kernels.bin_gaussians(arrays[0], radii.numpy(), depths.detach().numpy(), width, height)
+        bins = _kernels.bin_gaussians(arrays[0], arrays[1], arrays[3], radii.numpy(), depths.detach().numpy(), width,
+                                      height)
         img, t_final, n_proc = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], width, height, fast)
         ctx.state = (arrays, background.detach().numpy(), bins, img, t_final, n_proc, width, height, fast)
         t_final_t = torch.from_numpy(t_final)[..., None]                                   # [H, W, 1]
@@ -259,7 +260,8 @@ def pixel_contributors(
             return ref.contributors(m2[0], conics[0], opacities, depths[0], radii[0], int(width), int(height))
         arrays = [t.contiguous().numpy() for t in (m2[0], conics[0], opacities)]
         fast = means.dtype == torch.float32
-        bins = _kernels.bin_gaussians(arrays[0], radii[0].numpy(), depths[0].numpy(), int(width), int(height))
+        bins = _kernels.bin_gaussians(arrays[0], arrays[1], arrays[2], radii[0].numpy(), depths[0].numpy(), int(width),
+                                      int(height))
         feats = np.zeros((means.shape[0], 1), arrays[0].dtype)
         _, _, n_proc = _kernels.rasterize_fwd(arrays[0], arrays[1], feats, arrays[2], bins[0], bins[1], int(width),
                                               int(height), fast)
