@@ -29,7 +29,7 @@ import numba  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from station.ngs.raster import rasterization  # noqa: E402
+from station.ngs.raster import rasterization, set_num_threads  # noqa: E402
 
 SH_C0 = 0.28209479177387814
 REFERENCE_LIMIT = 2_000 * 128 * 128  # Gaussians x pixels beyond which the dense reference is skipped
@@ -117,8 +117,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "raster.json")
     args = parser.parse_args()
-    numba.set_num_threads(args.threads)
-    torch.set_num_threads(args.threads)
+    set_num_threads(args.threads)
     headline = [(20_000, 256, 256, 3), (100_000, 512, 512, 3), (2_000, 128, 128, 3)]
     counts = [10_000, 20_000, 50_000, 100_000, 200_000, 400_000] if args.full else [10_000, 50_000]
     sizes = [128, 256, 512, 1024] if args.full else [128, 512]

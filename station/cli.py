@@ -91,3 +91,73 @@ def demo(
         summary = run_sim_scan(scan_dir, None, 6, 40, (320, 240), 0.05, progress)
     result = {"scan": str(scan_dir), "frames": summary.total, "seconds": round(time.monotonic() - started, 1)}
     emit(result, as_json, lambda r: err_console.print(f"demo: scanned {r['frames']} frames into {r['scan']} in {r['seconds']} s"))
+
+
+@app.command("process")
+@exits_on_station_errors
+def process_command(
+    scan_dir: Path = typer.Argument(..., help="Scan folder with raw/ and manifest.jsonl."),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Develop the raws, cut the masks and pose the images (writes images/, masks/, poses/)."""
+    from station.process.stage import process_scan
+
+    result = process_scan(scan_dir)
+    emit(result, as_json, lambda r: err_console.print(
+        f"process {scan_dir}: {r['develop']['usable_shots']} images, posed by {r['poses']['method']} "
+        f"({len(r['poses']['registered'])} registered), flags: {', '.join(r['flags']) or 'none'}"
+    ))
+
+
+@app.command("import")
+@exits_on_station_errors
+def import_command(
+    src: Path = typer.Argument(..., help="Posed dataset to bring in."),
+    fmt: str = typer.Option(..., "--format", help="nerfstudio, colmap or idr."),
+    out: Path = typer.Option(..., "--out", help="Scan folder to create at the posed stage."),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Bring an existing posed dataset (images, optional masks, cameras) into a scan folder."""
+    from dataclasses import asdict
+
+    from station.process.importers import import_dataset
+
+    if fmt not in ("nerfstudio", "colmap", "idr"):
+        raise BadInputError(f"--format {fmt!r}: expected nerfstudio, colmap or idr")
+    report = import_dataset(src, fmt, out)  # type: ignore[arg-type]
+    emit(asdict(report), as_json, lambda r: err_console.print(f"imported {src} into {out}"))
+
+
+@app.command()
+@exits_on_station_errors
+def train(
+    scan_dir: Path = typer.Argument(..., help="Posed scan folder."),
+    method: str = typer.Option("ngs", "--method", help="3dgs, alpha or ngs."),
+    preset: str = typer.Option("fast", "--preset", help="fast or paper."),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Train the splat model (resumes from model/checkpoint.pt after an interruption)."""
+    from dataclasses import asdict
+
+    from station.ngs.pipeline import train_scan
+
+    with progress_reporter("train") as progress:
+        report = train_scan(scan_dir, method=method, preset=preset, progress=lambda step, info: progress(step, info.get("total", step), ""))
+    emit(asdict(report), as_json, lambda r: err_console.print(f"trained {scan_dir} ({method}, {preset})"))
+
+
+@app.command()
+@exits_on_station_errors
+def sos(
+    scan_dir: Path = typer.Argument(..., help="Trained scan folder (its infill is used)."),
+    splat: Optional[Path] = typer.Option(None, "--splat", help="Score this INRIA PLY instead of the scan's model."),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Surface Opacity Score and the starred metrics on the held-out views; writes transmittance maps."""
+    from station.ngs.sos import evaluate_scan
+
+    result = evaluate_scan(scan_dir, splat)
+    result.pop("views", None)
+    emit(result, as_json, lambda r: err_console.print(
+        f"SOS {r['sos']:.3f}  PSNR {r['psnr']:.2f} dB  PSNR* {r['psnr_star']:.2f} dB  SSIM {r['ssim']:.3f}"
+    ))

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from station.errors import BadInputError
-from station.ngs.raster import pixel_contributors, rasterization
+from station.ngs.raster import pixel_contributors, rasterization, set_num_threads
 from station.ngs.raster_reference import project
 
 
@@ -158,3 +158,17 @@ def test_gsplat_backend_on_cpu_tensors_is_refused():
     with pytest.raises(BadInputError, match="CUDA"):
         rasterization(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
                       scene["viewmats"], scene["Ks"], 16, 16, backend="gsplat")
+
+
+def test_thread_pools_are_sized_together():
+    import numba
+
+    before = (numba.get_num_threads(), torch.get_num_threads())
+    try:
+        set_num_threads(1)
+        assert numba.get_num_threads() == 1 and torch.get_num_threads() == 1
+    finally:
+        numba.set_num_threads(before[0])
+        torch.set_num_threads(before[1])
+    with pytest.raises(BadInputError, match="threads must be >= 1"):
+        set_num_threads(0)

@@ -25,7 +25,7 @@ from station.ngs.trainer import TrainConfig, Trainer
 from test_ngs_infill import ring_cameras, sphere_surface
 
 TINY = TrainConfig(
-    method="ngs", steps=60, sh_degree=1, checkpoint_every=20, seed=3,
+    method="ngs", steps=60, sh_degree=1, checkpoint_every=20, seed=3, densify=DensifyConfig(max_gaussians=1500),
     ngs=NGSConfig(infill=InfillConfig(levels=(8, 16), erosion_iters=(1, 2), prune_downscale=1)),
 )
 

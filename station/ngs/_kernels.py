@@ -234,16 +234,14 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, w
 @njit(parallel=True, fastmath=True, cache=True)
 def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, isect_gid, width, height,
                   feats, t_final, n_proc, g_feats, g_alpha, fast):
-    """Per-intersection gradients (list order) -> g_means2d [M,2], g_conics [M,3], g_colors [M,D], g_opac [M]."""
+    """Per-intersection gradients in list order -> slots [M, 6 + D]: d means2d (2), d conic (3), d colour (D),
+    d opacity (1)."""
     dt = means2d.dtype
     d_ch = colors.shape[1]
     tw = (width + TILE - 1) // TILE
     ntiles = tile_offsets.shape[0] - 1
     m = isect_gid.shape[0]
-    gm = np.zeros((m, 2), dt)
-    gc = np.zeros((m, 3), dt)
-    gcol = np.zeros((m, d_ch), dt)
-    gop = np.zeros(m, dt)
+    slots = np.zeros((m, 6 + d_ch), dt)
     for t in prange(ntiles):
         start, end = tile_offsets[t], tile_offsets[t + 1]
         if end == start:
@@ -297,7 +295,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                     rest[d, p] -= c * w[p]
                     gda[p] += go[d, p] * ((tb[p] * c if w[p] != ZERO else ZERO) - rest[d, p] * inv1a[p])
                     acc_c += go[d, p] * w[p]
-                gcol[s, d] = acc_c
+                slots[s, 5 + d] = acc_c
             g_op = ZERO
             g_mx = ZERO
             g_my = ZERO
@@ -316,13 +314,13 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 g_a += g_sig * HALF * dx * dx
                 g_b += g_sig * dx * dy
                 g_c += g_sig * HALF * dy * dy
-            gop[s] = g_op
-            gm[s, 0] = g_mx
-            gm[s, 1] = g_my
-            gc[s, 0] = g_a
-            gc[s, 1] = g_b
-            gc[s, 2] = g_c
-    return gm, gc, gcol, gop
+            slots[s, 0] = g_mx
+            slots[s, 1] = g_my
+            slots[s, 2] = g_a
+            slots[s, 3] = g_b
+            slots[s, 4] = g_c
+            slots[s, 5 + d_ch] = g_op
+    return slots
 
 
 @njit(parallel=True, cache=True)

@@ -68,10 +68,11 @@ def _sh_basis_grad(x, y, z, gx, gy, gz):
 
 
 @njit(cache=True, inline="always")
-def _quat_rot(q, R):
-    """Unit rotation from an unnormalised wxyz quaternion into R [3, 3]; returns the norm and unit quaternion."""
-    nrm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    w, x, y, z = q[0] / nrm, q[1] / nrm, q[2] / nrm, q[3] / nrm
+def _quat_rot(quats, g, R):
+    """Unit rotation from Gaussian g's unnormalised wxyz quaternion into R [3, 3]; returns norm and unit quaternion."""
+    q0, q1, q2, q3 = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
+    nrm = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    w, x, y, z = q0 / nrm, q1 / nrm, q2 / nrm, q3 / nrm
     R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
     R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
     R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
@@ -90,12 +91,12 @@ def _mm(A, B, out):
 
 
 @njit(cache=True, inline="always")
-def _camera_cov(q, s, Rw, R, M, cov, covc, tmp):
-    """World covariance R S S R^T and its camera-frame rotation Rw cov Rw^T (into cov, covc [3, 3])."""
-    _quat_rot(q, R)
+def _camera_cov(quats, scales, g, Rw, R, M, cov, covc, tmp):
+    """World covariance R S S R^T of Gaussian g and its camera-frame rotation Rw cov Rw^T (into cov, covc)."""
+    _quat_rot(quats, g, R)
     for i in range(3):
         for j in range(3):
-            M[i, j] = R[i, j] * s[j]
+            M[i, j] = R[i, j] * scales[g, j]
     for i in range(3):
         for j in range(3):
             cov[i, j] = M[i, 0] * M[j, 0] + M[i, 1] * M[j, 1] + M[i, 2] * M[j, 2]
@@ -125,8 +126,9 @@ CHUNK = 64
 
 @njit(cache=True)
 def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far,
-                 means2d, conics, depths, radii, colors, Rw, sc, basis):
-    """Project Gaussian g into camera c, writing every output slot; sc is [5, 3, 3] scratch."""
+                 means2d, conics, depths, radii, colors, Rw, s0, s1, s2, covc, s4, basis):
+    """Project Gaussian g into camera c, writing every output slot; s0..s4 are [3, 3] scratch (separate
+    arrays, not slices: a slice costs an atomic refcount pair per call)."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
     x = Rw[0, 0] * means[g, 0] + Rw[0, 1] * means[g, 1] + Rw[0, 2] * means[g, 2] + viewmats[c, 0, 3]
     y = Rw[1, 0] * means[g, 0] + Rw[1, 1] * means[g, 1] + Rw[1, 2] * means[g, 2] + viewmats[c, 1, 3]
@@ -136,8 +138,7 @@ def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, ca
         return
     means2d[c, g, 0] = fx * x / z + cx
     means2d[c, g, 1] = fy * y / z + cy
-    covc = sc[3]
-    _camera_cov(quats[g], scales[g], Rw, sc[0], sc[1], sc[2], covc, sc[4])
+    _camera_cov(quats, scales, g, Rw, s0, s1, s2, covc, s4)
     j00, j02, j11, j12, _, _, _, _ = _jacobian(x, y, z, fx, fy, cx, cy, width, height)
     a = j00 * j00 * covc[0, 0] + 2 * j00 * j02 * covc[0, 2] + j02 * j02 * covc[2, 2] + EPS2D
     b = j00 * j11 * covc[0, 1] + j00 * j12 * covc[0, 2] + j02 * j11 * covc[2, 1] + j02 * j12 * covc[2, 2]
@@ -178,28 +179,27 @@ def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     for c in range(c_n):
         Rw = viewmats[c, :3, :3].astype(np.float64)
         for chunk in prange((n + CHUNK - 1) // CHUNK):
-            sc = np.empty((5, 3, 3))
+            s0, s1, s2, s3, s4 = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
             basis = np.empty(16)
             for g in range(chunk * CHUNK, min(n, chunk * CHUNK + CHUNK)):
                 _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height,
-                             near, far, means2d, conics, depths, radii, colors, Rw, sc, basis)
+                             near, far, means2d, conics, depths, radii, colors, Rw, s0, s1, s2, s3, s4, basis)
     return means2d, conics, depths, radii, colors
 
 
 @njit(cache=True)
 def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, colors,
-                     g_means2d, g_conics, g_depths, g_colors, g_means, g_coeffs, g_cov, pose_part, Rw, sc, sh):
-    """Backward of `_project_one` for (c, g): adds into g_means, g_coeffs, g_cov (world covariance), pose_part."""
+                     g_means2d, g_conics, g_depths, g_colors, g_means, g_coeffs, g_cov, pose_part, Rw, s0, s1, cov,
+                     covc, t33, g_covc, gR, J, jc, basis, bx, by, bz):
+    """Backward of `_project_one` for (c, g): adds into g_means, g_coeffs, g_cov (world covariance), pose_part.
+    Everything after pose_part is scratch: [3, 3] except J, jc [2, 3] and the SH buffers [16]."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
     x = Rw[0, 0] * means[g, 0] + Rw[0, 1] * means[g, 1] + Rw[0, 2] * means[g, 2] + viewmats[c, 0, 3]
     y = Rw[1, 0] * means[g, 0] + Rw[1, 1] * means[g, 1] + Rw[1, 2] * means[g, 2] + viewmats[c, 1, 3]
     z = Rw[2, 0] * means[g, 0] + Rw[2, 1] * means[g, 1] + Rw[2, 2] * means[g, 2] + viewmats[c, 2, 3]
-    cov, covc, t33, g_covc, gR = sc[2], sc[3], sc[4], sc[5], sc[6]
-    _camera_cov(quats[g], scales[g], Rw, sc[0], sc[1], cov, covc, t33)
+    _camera_cov(quats, scales, g, Rw, s0, s1, cov, covc, t33)
     j00, j02, j11, j12, free_x, free_y, rx, ry = _jacobian(x, y, z, fx, fy, cx, cy, width, height)
-    J = sc[7, :2, :]
     J[0, 0], J[0, 1], J[0, 2], J[1, 0], J[1, 1], J[1, 2] = j00, 0.0, j02, 0.0, j11, j12
-    jc = sc[8, :2, :]
     _mm(J, covc, jc)                                       # J covc [2, 3]
     a = jc[0, 0] * J[0, 0] + jc[0, 2] * J[0, 2] + EPS2D
     b = jc[0, 1] * J[1, 1] + jc[0, 2] * J[1, 2]
@@ -246,7 +246,6 @@ def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks
             g_means[g, j] += Rw[i, j] * g_mc[i]
         pose_part[c, g, 9 + i] = g_mc[i]
     if sh_degree >= 0:
-        basis, bx, by, bz = sh[0], sh[1], sh[2], sh[3]
         d0, d1, d2 = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
         nd = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         u0, u1, u2 = d0 / nd, d1 / nd, d2 / nd
@@ -272,7 +271,7 @@ def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks
 @njit(cache=True)
 def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
     """Chain d loss / d world covariance into the (unnormalised) quaternion and the scales of Gaussian g."""
-    nrm, w, x, y, z = _quat_rot(quats[g], R)
+    nrm, w, x, y, z = _quat_rot(quats, g, R)
     for i in range(3):
         for j in range(3):
             M[i, j] = R[i, j] * scales[g, j]
@@ -310,11 +309,12 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     g_scales = np.zeros((n, 3), dt)
     g_coeffs = np.zeros(coeffs.shape, dt)
     pose_part = np.zeros((c_n, n, 15))  # per (camera, Gaussian): d Rw (9), d t (3), d campos (3)
-    Rws = viewmats[:, :3, :3].astype(np.float64)
+    Rws = [viewmats[c, :3, :3].astype(np.float64) for c in range(c_n)]
     for chunk in prange((n + CHUNK - 1) // CHUNK):
-        sc = np.zeros((9, 3, 3))
-        sh = np.empty((4, 16))
-        g_cov = np.empty((3, 3))
+        s0, s1, cov, covc, t33 = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+        g_covc, gR, g_cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+        J, jc = np.empty((2, 3)), np.empty((2, 3))
+        basis, bx, by, bz = np.empty(16), np.empty(16), np.empty(16), np.empty(16)
         for g in range(chunk * CHUNK, min(n, chunk * CHUNK + CHUNK)):
             g_cov[:] = 0.0
             seen = False
@@ -323,9 +323,10 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
                     seen = True
                     _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width,
                                      height, colors, g_means2d, g_conics, g_depths, g_colors, g_means, g_coeffs,
-                                     g_cov, pose_part, Rws[c], sc, sh)
+                                     g_cov, pose_part, Rws[c], s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx,
+                                     by, bz)
             if seen:
-                _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, sc[0], sc[1], sc[2])
+                _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, s0, s1, gR)
     pose = pose_part.sum(axis=1)                           # [C, 15], fixed summation order
     g_viewmats = np.zeros((c_n, 4, 4), dt)
     g_campos = np.zeros((c_n, 3), dt)

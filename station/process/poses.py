@@ -21,8 +21,8 @@ from PIL import Image
 
 from station.errors import ScanFolderError, StationError
 from station.process import sfm
-from station.process.rig_model import RigModel, apply_similarity, rotation_angle_deg, umeyama
-from station.process.transforms import PosedFrame, Transforms, write_transforms
+from station.process.rig_model import PosedView, RigModel, apply_similarity, calibrate_rig, rotation_angle_deg, umeyama
+from station.process.transforms import PosedFrame, Transforms, read_transforms, write_transforms
 from station.process.visual_hull import carve, ring_frame
 from station.rig_geometry import RigGeometry
 from station.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_json, atomic_write_with
@@ -282,3 +282,18 @@ def write_point_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
     with open(path, "wb") as handle:
         handle.write(header.encode("ascii"))
         handle.write(vertex.tobytes())
+
+
+def calibrate_from_scan(scan: ScanFolder, settings: PoseSettings, nominal: RigModel) -> tuple[RigModel, PoseReport]:
+    """Calibrate the station's rig model from one full scan: pure SfM, then fit axis and elevations.
+
+    Writes the scan's poses/ from the free SfM run (they are that scan's best poses anyway).
+    """
+    refs, _ = collect_frames(scan)
+    if any(r.elevation_deg is None for r in refs):
+        raise PosingError(f"{scan.root}: rig calibration needs the manifest's elevation and azimuth per frame")
+    report = pose_scan(scan, settings, None)
+    by_name = {r.name: r for r in refs}
+    views = [PosedView(by_name[Path(f.file_path).name].elevation_deg, by_name[Path(f.file_path).name].azimuth_deg,
+                       f.c2w) for f in read_transforms(scan).frames]
+    return calibrate_rig(views, nominal), report

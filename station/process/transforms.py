@@ -41,7 +41,7 @@ class Transforms:
     ply_file_path: str | None = None
 
 
-def write_transforms(scan: ScanFolder, transforms: Transforms, extra: dict | None = None) -> Path:
+def write_transforms(scan: ScanFolder, transforms: Transforms) -> Path:
     """Write poses/transforms.json. Paths are relative to the scan folder (images/..., masks/...), as the contract says."""
     intr = transforms.intrinsics
     data: dict = {
@@ -68,8 +68,6 @@ def write_transforms(scan: ScanFolder, transforms: Transforms, extra: dict | Non
     if transforms.ply_file_path is not None:
         scan.resolve_inside(transforms.ply_file_path)
         data["ply_file_path"] = transforms.ply_file_path
-    if extra:
-        data.update(extra)
     atomic_write_json(scan.transforms_path, data)
     return scan.transforms_path
 

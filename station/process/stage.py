@@ -1,0 +1,54 @@
+"""`station process`: develop, mask and pose one scan folder, then mark the stage done.
+
+The rig model comes from, in order: a calibrated station model (`STATION_RIG_MODEL` or the
+`rig_model` argument), the nominal rig recorded in scan.json, or none at all (pure SfM, for scans
+made elsewhere).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from station.errors import BadInputError
+from station.process.develop_stage import ProcessSettings, develop_scan
+from station.process.poses import PoseSettings, pose_scan
+from station.process.rig_model import RigModel
+from station.rig_geometry import RigGeometry
+from station.scanfolder import ScanFolder
+
+
+def station_rig_model(scan: ScanFolder, rig_model: Path | None) -> RigModel | None:
+    """The best rig prior for this scan, or None when the scan carries no rig at all."""
+    path = rig_model or (Path(os.environ["STATION_RIG_MODEL"]) if os.environ.get("STATION_RIG_MODEL") else None)
+    if path is not None:
+        if not path.is_file():
+            raise BadInputError(f"{path}: rig model file not found")
+        return RigModel.load(path)
+    if not scan.scan_json.exists():
+        return None
+    record = scan.read_scan_json()
+    if not isinstance(record.get("rig"), dict) or not isinstance(record.get("plan"), dict):
+        return None
+    return RigModel.nominal(RigGeometry.from_dict(record["rig"]), list(record["plan"]["elevations_deg"]))
+
+
+def process_scan(
+    scan_root: Path,
+    develop: ProcessSettings = ProcessSettings(),
+    poses: PoseSettings = PoseSettings(),
+    rig_model: Path | None = None,
+) -> dict:
+    """Develop + masks, then poses; returns (and records in stages/process.json) both reports."""
+    scan = ScanFolder(scan_root)
+    if not scan.root.is_dir():
+        raise BadInputError(f"{scan.root}: scan folder not found")
+    developed = develop_scan(scan, develop)
+    if not developed.usable_shots:
+        raise BadInputError(f"{scan.root}: no usable shot after develop; see the per-frame flags in stages/")
+    posed = pose_scan(scan, poses, station_rig_model(scan, rig_model))
+    flags = sorted({flag for frame in developed.frames for flag in frame.flags} | set(posed.flags))
+    result = {"develop": developed.to_json(), "poses": posed.to_dict(), "flags": flags}
+    result["develop"]["usable_shots"] = len(developed.usable_shots)
+    scan.mark_done("process", result)
+    return result
