@@ -12,6 +12,8 @@ from station import __version__
 from station.cli_support import configure_logging, emit, err_console, exits_on_station_errors, progress_reporter
 from station.errors import BadInputError
 
+DEMO_SENSOR = (320, 240)  # simulated sensor size for `station demo`
+
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Turntable capture-to-asset station.")
 
 
@@ -76,23 +78,6 @@ def scan(
     ))
 
 
-@app.command()
-@exits_on_station_errors
-def demo(
-    out: Path = typer.Option(Path("demo-out"), "--out", help="Folder for the demo scan and its asset."),
-    as_json: bool = typer.Option(False, "--json"),
-) -> None:
-    """The main job on embedded defaults: a simulated rig scans a stone, then every later stage runs."""
-    from station.cli_scan import run_sim_scan
-
-    scan_dir = out / "scan"
-    started = time.monotonic()
-    with progress_reporter("scan") as progress:
-        summary = run_sim_scan(scan_dir, None, 6, 40, (320, 240), 0.05, progress)
-    result = {"scan": str(scan_dir), "frames": summary.total, "seconds": round(time.monotonic() - started, 1)}
-    emit(result, as_json, lambda r: err_console.print(f"demo: scanned {r['frames']} frames into {r['scan']} in {r['seconds']} s"))
-
-
 @app.command("process")
 @exits_on_station_errors
 def process_command(
@@ -140,9 +125,11 @@ def train(
     from dataclasses import asdict
 
     from station.ngs.pipeline import train_scan
+    from station.ngs.presets import make_config
 
+    total = make_config(method, preset).steps
     with progress_reporter("train") as progress:
-        report = train_scan(scan_dir, method=method, preset=preset, progress=lambda step, info: progress(step, info.get("total", step), ""))
+        report = train_scan(scan_dir, method=method, preset=preset, progress=lambda step, terms: progress(step, total, ""))
     emit(asdict(report), as_json, lambda r: err_console.print(f"trained {scan_dir} ({method}, {preset})"))
 
 
@@ -161,3 +148,78 @@ def sos(
     emit(result, as_json, lambda r: err_console.print(
         f"SOS {r['sos']:.3f}  PSNR {r['psnr']:.2f} dB  PSNR* {r['psnr_star']:.2f} dB  SSIM {r['ssim']:.3f}"
     ))
+
+
+@app.command("export")
+@exits_on_station_errors
+def export_command(
+    scan_dir: Path = typer.Argument(..., help="Trained scan folder."),
+    stl: bool = typer.Option(False, "--stl", help="Also write asset/mesh.stl for printing."),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Splats, watertight mesh, metrics, the SOS gate and the report; exit 1 if the gate fails."""
+    from station.export.stage import ExportConfig, export_scan
+
+    report = export_scan(scan_dir, ExportConfig(stl=stl))
+    _print_verdict(report, as_json)
+    if not report.passed:
+        raise typer.Exit(1)
+
+
+def _print_verdict(report, as_json: bool) -> None:
+    result = {"scan": str(report.scan_root), "pass": report.passed, "gate": report.gate.to_json(),
+              "files": {k: str(v) for k, v in report.files.items()}, "seconds": round(report.seconds, 1)}
+    emit(result, as_json, lambda r: err_console.print(report.gate.summary()))
+
+
+def run_pipeline(scan_dir: Path, method: str, preset: str):
+    """process -> train -> export, skipping stages already marked done (resumable)."""
+    from station.export.stage import export_scan
+    from station.ngs.pipeline import train_scan
+    from station.process.stage import process_scan
+    from station.scanfolder import ScanFolder
+
+    scan = ScanFolder(scan_dir)
+    if not scan.is_done("process"):
+        err_console.print("process: develop, masks, poses ...")
+        process_scan(scan_dir)
+    if not scan.is_done("train"):
+        err_console.print(f"train: {method}, {preset} preset ...")
+        train_scan(scan_dir, method=method, preset=preset)
+    err_console.print("export: splats, mesh, gate, report ...")
+    return export_scan(scan_dir)
+
+
+@app.command()
+@exits_on_station_errors
+def run(
+    scan_dir: Path = typer.Argument(..., help="Scan folder; resumes where it stopped."),
+    method: str = typer.Option("ngs", "--method"),
+    preset: str = typer.Option("fast", "--preset"),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """process + train + export; stages already done are skipped. Exit 1 if the gate fails."""
+    report = run_pipeline(scan_dir, method, preset)
+    _print_verdict(report, as_json)
+    if not report.passed:
+        raise typer.Exit(1)
+
+
+@app.command()
+@exits_on_station_errors
+def demo(
+    out: Path = typer.Option(Path("demo-out"), "--out", help="Folder for the demo scan and its asset."),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """The main job on embedded defaults: the simulated rig scans a stone, then process, train, export, gate."""
+    from station.cli_scan import run_sim_scan
+
+    scan_dir = out / "scan"
+    started = time.monotonic()
+    with progress_reporter("scan") as progress:
+        run_sim_scan(scan_dir, None, 6, 40, DEMO_SENSOR, 0.05, progress)
+    report = run_pipeline(scan_dir, "ngs", "fast")
+    err_console.print(f"demo finished in {time.monotonic() - started:.0f} s; asset in {scan_dir / 'asset'}")
+    _print_verdict(report, as_json)
+    if not report.passed:
+        raise typer.Exit(1)

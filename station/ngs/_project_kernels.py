@@ -20,7 +20,7 @@ C30, C31, C32, C33 = -0.5900435899266435, 2.890611442640554, -0.4570457994644658
 C34, C35, C36 = -0.4570457994644658, 1.445305721320277, -0.5900435899266435
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _sh_basis(x, y, z, out):
     """Real SH basis up to degree 3 (gsplat/3DGS signs) at unit direction (x, y, z) into out[16]."""
     xx, yy, zz = x * x, y * y, z * z
@@ -42,7 +42,7 @@ def _sh_basis(x, y, z, out):
     out[15] = C36 * x * (xx - 3 * yy)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _sh_basis_grad(x, y, z, gx, gy, gz):
     """d basis_k / d(x, y, z) for k < 16 into gx, gy, gz [16]."""
     xx, yy, zz = x * x, y * y, z * z
@@ -67,7 +67,7 @@ def _sh_basis_grad(x, y, z, gx, gy, gz):
     gx[15], gy[15] = C36 * (3 * xx - 3 * yy), -6 * C36 * x * y
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _quat_rot(quats, g, R):
     """Unit rotation from Gaussian g's unnormalised wxyz quaternion into R [3, 3]; returns norm and unit quaternion."""
     q0, q1, q2, q3 = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
@@ -79,7 +79,7 @@ def _quat_rot(quats, g, R):
     return nrm, w, x, y, z
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _mm(A, B, out):
     """out = A @ B for tiny matrices (numba's @ calls BLAS and allocates: far too slow per Gaussian)."""
     for i in range(A.shape[0]):
@@ -90,7 +90,7 @@ def _mm(A, B, out):
             out[i, j] = acc
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _camera_cov(quats, scales, g, Rw, R, M, cov, covc, tmp):
     """World covariance R S S R^T of Gaussian g and its camera-frame rotation Rw cov Rw^T (into cov, covc)."""
     _quat_rot(quats, g, R)
@@ -106,7 +106,7 @@ def _camera_cov(quats, scales, g, Rw, R, M, cov, covc, tmp):
             covc[i, j] = tmp[i, 0] * Rw[j, 0] + tmp[i, 1] * Rw[j, 1] + tmp[i, 2] * Rw[j, 2]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _jacobian(x, y, z, fx, fy, cx, cy, width, height):
     """EWA Jacobian entries (J00, J02, J11, J12) with gsplat's 1.3x frustum clamp, and the clamp flags."""
     lxp = (width - cx) / fx + 0.3 * (0.5 * width / fx)
@@ -124,7 +124,7 @@ def _jacobian(x, y, z, fx, fy, cx, cy, width, height):
 CHUNK = 64
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=True)
 def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far,
                  means2d, conics, depths, radii, colors, Rw, s0, s1, s2, covc, s4, basis):
     """Project Gaussian g into camera c, writing every output slot; s0..s4 are [3, 3] scratch (separate
@@ -166,7 +166,7 @@ def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, ca
             colors[c, g, ch] = max(acc + 0.5, 0.0)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far):
     """-> means2d [C,N,2], conics [C,N,3], depths [C,N], radii [C,N] int32, colors [C,N,3] (SH; zeros if deg < 0)."""
     c_n, n = viewmats.shape[0], means.shape[0]
@@ -187,7 +187,7 @@ def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     return means2d, conics, depths, radii, colors
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=True)
 def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, colors,
                      g_means2d, g_conics, g_depths, g_colors, g_means, g_coeffs, g_cov, pose_part, Rw, s0, s1, cov,
                      covc, t33, g_covc, gR, J, jc, basis, bx, by, bz):
@@ -268,7 +268,7 @@ def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks
             pose_part[c, g, 12 + i] = -gm[i]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", fastmath=True)
 def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
     """Chain d loss / d world covariance into the (unnormalised) quaternion and the scales of Gaussian g."""
     nrm, w, x, y, z = _quat_rot(quats, g, R)
@@ -298,7 +298,7 @@ def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
     g_quats[g, 3] = (gz - z * dot) / nrm
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii, colors,
                 g_means2d, g_conics, g_depths, g_colors):
     """-> g_means [N,3], g_quats [N,4], g_scales [N,3], g_coeffs [N,K,3], g_viewmats [C,4,4], g_campos [C,3]."""

@@ -262,17 +262,21 @@ def pixel_contributors(
     rgb = means.new_zeros(means.shape) if torch.is_tensor(means) and means.dim() == 2 else means
     _validate(means, quats, scales, opacities, rgb, viewmat[None], K[None], width, height, None, None)
     chosen = _resolve_backend(backend, means.device)
+    width, height = int(width), int(height)
     with torch.no_grad():
-        m2, conics, depths, radii = ref.project(means, quats, scales, viewmat[None], K[None], int(width),
-                                                int(height), near_plane, 1e10)
         if chosen != "cpu":
-            return ref.contributors(m2[0], conics[0], opacities, depths[0], radii[0], int(width), int(height))
-        arrays = [t.contiguous().numpy() for t in (m2[0], conics[0], opacities)]
+            m2, conics, depths, radii = ref.project(means, quats, scales, viewmat[None], K[None], width, height,
+                                                    near_plane, 1e10)
+            return ref.contributors(m2[0], conics[0], opacities, depths[0], radii[0], width, height)
+        gauss = [t.contiguous().numpy() for t in (means, quats, scales)]
+        cams = [t[None].contiguous().numpy() for t in (viewmat, K, ref.camera_centres(viewmat[None])[0])]
+        m2, conics, depths, radii, _ = _project_kernels.project_fwd(
+            *gauss, np.zeros((means.shape[0], 1, 3), gauss[0].dtype), -1, *cams, width, height, near_plane, 1e10)
+        opac = opacities.contiguous().numpy()
         fast = means.dtype == torch.float32
-        bins = _kernels.bin_gaussians(arrays[0], arrays[1], arrays[2], radii[0].numpy(), depths[0].numpy(), int(width),
-                                      int(height))
-        feats = np.zeros((means.shape[0], 1), arrays[0].dtype)
-        _, _, n_proc = _kernels.rasterize_fwd(arrays[0], arrays[1], feats, arrays[2], bins[0], bins[1], int(width),
-                                              int(height), fast)
-        offsets, ids = _kernels.list_contributors(*arrays, bins[0], bins[1], int(width), int(height), n_proc, fast)
+        bins = _kernels.bin_gaussians(m2[0], conics[0], opac, radii[0], depths[0], width, height)
+        feats = np.zeros((means.shape[0], 1), m2.dtype)
+        _, _, n_proc = _kernels.rasterize_fwd(m2[0], conics[0], feats, opac, bins[0], bins[1], width, height, fast)
+        offsets, ids = _kernels.list_contributors(m2[0], conics[0], opac, bins[0], bins[1], width, height, n_proc,
+                                                  fast)
         return torch.from_numpy(offsets), torch.from_numpy(ids)
