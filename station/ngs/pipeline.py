@@ -38,6 +38,7 @@ def write_model(trainer: Trainer, report: TrainReport) -> None:
         "report": asdict(report),
         "config": asdict(trainer.cfg),
         "losses": trainer.losses,
+        "held_out": trainer.evals,
         "densify": trainer.strategy.state.history,
         "ngs": trainer.ngs.history if trainer.ngs else [],
     }

@@ -12,13 +12,14 @@ from station.errors import BadInputError
 from station.ngs.infill import InfillConfig
 from station.ngs.losses import LossConfig
 from station.ngs.ngs_schedule import NGSConfig
+from station.ngs.strategy import DensifyConfig
 from station.ngs.trainer import TrainConfig
 
 METHODS = ("3dgs", "alpha", "ngs")
 
 
 def paper_preset() -> TrainConfig:
-    return TrainConfig(steps=30_000, sh_degree=3, downscale=1, checkpoint_every=1_000)
+    return TrainConfig(steps=30_000, sh_degree=3, downscale=1, checkpoint_every=1_000, eval_every=2_000)
 
 
 def fast_preset() -> TrainConfig:
@@ -28,6 +29,8 @@ def fast_preset() -> TrainConfig:
         sh_degree=1,
         downscale=1,
         checkpoint_every=250,
+        eval_every=500,
+        densify=DensifyConfig(max_gaussians=50_000),
         ngs=NGSConfig(infill=InfillConfig(levels=(32, 64, 128), erosion_iters=(3, 4, 5))),
     )
 

@@ -203,10 +203,12 @@ class DefaultStrategy:
         high = grads > cfg.grow_grad2d
         small = torch.exp(params["scales"].detach()).max(dim=-1).values <= cfg.grow_scale3d * self.scene_scale
         room = cfg.max_gaussians - len(params["means"])
+        if int(high.sum()) > room:  # over budget: grow only the largest gradients that still fit
+            if room <= 0:
+                return 0, 0
+            high &= grads >= torch.topk(grads[high], room).values.min()
         is_dupli = high & small
         is_split = high & ~small
-        if int(is_dupli.sum()) + int(is_split.sum()) > room:
-            return 0, 0
         if is_dupli.any():
             duplicate(params, optimizers, is_dupli)
         is_split = torch.cat([is_split, torch.zeros(int(is_dupli.sum()), dtype=torch.bool)])

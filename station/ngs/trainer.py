@@ -7,6 +7,7 @@ killed run continues where it stopped.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -42,6 +43,7 @@ class TrainConfig:
     lr_shN: float = 2.5e-3 / 20
     downscale: int = 1
     checkpoint_every: int = 500
+    eval_every: int = 0  # held-out PSNR every this many steps (0: off), the speed-against-error evidence
     seed: int = 0
     backend: str = "auto"
     loss: LossConfig = field(default_factory=LossConfig)
@@ -79,6 +81,7 @@ class Trainer:
         self.step = 0
         self.seconds = 0.0
         self.losses: list[dict] = []
+        self.evals: list[dict] = []
 
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         lrs = {
@@ -137,7 +140,6 @@ class Trainer:
     def run(self, progress: Callable[[int, dict], None] | None = None) -> TrainReport:
         resumed_from = self.load_checkpoint()
         started = time.perf_counter() - self.seconds
-        terms: dict[str, float] = {"loss": float("nan")}
         while self.step < self.cfg.steps:
             terms = self.train_step(self.step)
             self.step += 1
@@ -146,6 +148,8 @@ class Trainer:
                 self.losses.append({"step": self.step, "seconds": round(self.seconds, 2), **terms})
                 if progress:
                     progress(self.step, terms)
+            if self.cfg.eval_every and (self.step % self.cfg.eval_every == 0 or self.step == self.cfg.steps):
+                self.evals.append({"step": self.step, "seconds": round(self.seconds, 2), "psnr": self.held_out_psnr()})
             if self.step % self.cfg.checkpoint_every == 0 or self.step == self.cfg.steps:
                 self.save_checkpoint()
         return TrainReport(
@@ -154,10 +158,27 @@ class Trainer:
             seconds=round(self.seconds, 2),
             num_gaussians=len(self.model),
             num_infill=len(self.ngs.infill) if self.ngs and self.ngs.infill is not None else 0,
-            final_loss=terms["loss"],
+            final_loss=self.losses[-1]["loss"] if self.losses else float("nan"),
             resumed_from=resumed_from,
             model_dir=str(self.model_dir),
         )
+
+    def held_out_psnr(self) -> float:
+        """Mean PSNR of the surface on the held-out views (render clamped, both sides masked)."""
+        if not self.scene.test:
+            return float("nan")
+        g = {k: v.detach() for k, v in self.model.activated().items()}
+        values = []
+        for view in self.scene.test:
+            with torch.no_grad():
+                colors, _, _ = rasterization(
+                    g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], view.viewmat[None],
+                    view.K[None], view.width, view.height, sh_degree=self.cfg.sh_degree, backend=self.cfg.backend,
+                )
+            mask = view.mask[..., None] if view.mask is not None else torch.ones(1)
+            mse = float(((colors[0].clamp(0, 1) - view.image) * mask).square().mean())
+            values.append(10 * math.log10(1 / max(mse, 1e-12)))
+        return sum(values) / len(values)
 
     # Checkpoints ------------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -172,6 +193,7 @@ class Trainer:
             "ngs": self.ngs.state_dict() if self.ngs else None,
             "generator": self.generator.get_state(),
             "losses": list(self.losses),
+            "evals": list(self.evals),
         }
 
     def save_checkpoint(self) -> None:
@@ -195,6 +217,7 @@ class Trainer:
         if self.ngs:
             self.ngs.load_state_dict(state["ngs"])
         self.generator.set_state(state["generator"])
-        self.step, self.seconds, self.losses = state["step"], state["seconds"], list(state["losses"])
+        self.step, self.seconds = state["step"], state["seconds"]
+        self.losses, self.evals = list(state["losses"]), list(state["evals"])
         return self.step
 
