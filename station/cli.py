@@ -9,7 +9,8 @@ from typing import Optional
 import typer
 
 from station import __version__
-from station.cli_support import configure_logging, emit, err_console, exits_on_station_errors, progress_reporter
+from station.cli_serve import serve
+from station.cli_support import configure_logging, emit, err_console, exits_on_station_errors, parse_size, progress_reporter
 from station.errors import BadInputError
 
 DEMO_SENSOR = (320, 240)  # simulated sensor size for `station demo`
@@ -26,16 +27,6 @@ def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug logg
 def version() -> None:
     """Print the software version."""
     typer.echo(__version__)
-
-
-def _parse_size(size: str) -> tuple[int, int]:
-    try:
-        width, height = (int(v) for v in size.lower().split("x"))
-    except ValueError as exc:
-        raise BadInputError(f"--size {size!r}: expected WIDTHxHEIGHT, e.g. 320x240") from exc
-    if width < 16 or height < 16 or width % 2 or height % 2:
-        raise BadInputError(f"--size {size!r}: both sides must be even and at least 16 pixels (Bayer 2x2 cells)")
-    return width, height
 
 
 @app.command()
@@ -55,7 +46,7 @@ def scan(
     """Shoot (or resume) a 6x40 hemisphere scan: plates first, then every shot; nothing is ever re-shot twice."""
     from station.cli_scan import run_hardware_scan, run_sim_scan
 
-    width, height = _parse_size(size)
+    width, height = parse_size(size)
     started = time.monotonic()
     with progress_reporter("scan") as progress:
         if sim:
@@ -225,3 +216,6 @@ def demo(
     _print_verdict(report, as_json)
     if not report.passed:
         raise typer.Exit(1)
+
+
+app.command("serve")(serve)

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Callable
 
 from station.capture.plan import ScanPlan, default_elevations
-from station.capture.session import OperatorAction, ScanSession, ScanSummary
+from station.capture.session import Operator, OperatorAction, ScanControl, ScanSession, ScanSummary
 from station.errors import BadInputError, DeviceError
 from station.rig_geometry import RigGeometry
 from station.scanfolder import ScanFolder
@@ -33,9 +33,10 @@ def _plan(elevations: int, azimuths: int) -> ScanPlan:
 
 
 def run_sim_scan(
-    out: Path, stone: str | None, elevations: int, azimuths: int, size: tuple[int, int], time_scale: float, progress: Progress
+    out: Path, stone: str | None, elevations: int, azimuths: int, size: tuple[int, int], time_scale: float, progress: Progress,
+    control: ScanControl | None = None,
 ) -> ScanSummary:
-    """Scan on the simulated rig and write sim_truth/ beside the scan."""
+    """Scan on the simulated rig and write sim_truth/ beside the scan (`control`: the dashboard's pause/cancel)."""
     from sim.rig import build_sim_rig, make_stone
 
     rig_geometry = RigGeometry().scaled(*size)
@@ -44,7 +45,7 @@ def run_sim_scan(
     with build_sim_rig(stone_model, rig_geometry, time_scale=time_scale) as rig:
         session = ScanSession(
             scan, _plan(elevations, azimuths), rig_geometry, rig.turntable, rig.camera, rig.operator,
-            stone_id=stone_model.name, progress=progress,
+            stone_id=stone_model.name, progress=progress, control=control,
         )
         summary = session.run()
         rig.write_truth(scan)
@@ -52,9 +53,13 @@ def run_sim_scan(
 
 
 def run_hardware_scan(
-    out: Path, port: str, camera: str, elevations: int, azimuths: int, size: tuple[int, int], progress: Progress
+    out: Path, port: str, camera: str, elevations: int, azimuths: int, size: tuple[int, int], progress: Progress,
+    control: ScanControl | None = None, operator: Operator | None = None,
 ) -> ScanSummary:
-    """Scan with a real turntable, and a real PTP camera (or the simulated one for bench tests)."""
+    """Scan with a real turntable, and a real PTP camera (or the simulated one for bench tests).
+
+    The dashboard passes its own `control` (pause/cancel) and `operator` (prompts on the page).
+    """
     from station.capture.ptp import open_ptp_camera
     from station.capture.still import PtpStillCamera
     from station.turntable.grbl import Turntable
@@ -78,7 +83,7 @@ def run_hardware_scan(
         try:
             session = ScanSession(
                 ScanFolder(out), _plan(elevations, azimuths), rig_geometry, turntable, PtpStillCamera(ptp),
-                TerminalOperator(), stone_id=out.name, progress=progress,
+                operator or TerminalOperator(), stone_id=out.name, progress=progress, control=control,
             )
             return session.run()
         finally:

@@ -13,7 +13,7 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from station.errors import StationError
+from station.errors import BadInputError, StationError
 
 err_console = Console(stderr=True)
 
@@ -72,3 +72,13 @@ def configure_logging(verbose: bool) -> None:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+
+
+def parse_size(size: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+    except ValueError as exc:
+        raise BadInputError(f"--size {size!r}: expected WIDTHxHEIGHT, e.g. 320x240") from exc
+    if width < 16 or height < 16 or width % 2 or height % 2:
+        raise BadInputError(f"--size {size!r}: both sides must be even and at least 16 pixels (Bayer 2x2 cells)")
+    return width, height

@@ -10,13 +10,14 @@ never a listed frame without its file.
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Callable, Literal, Protocol
 
 from station import __version__
 from station.capture.plan import PlannedFrame, ScanPlan
-from station.errors import DeviceError, ScanFolderError
+from station.errors import DeviceError, ScanFolderError, StationError
 from station.rig_geometry import RigGeometry
 from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, atomic_write_json, require_free_space, sha256_bytes
 
@@ -65,6 +66,58 @@ class Operator(Protocol):
     def request(self, action: OperatorAction, message: str) -> None: ...
 
 
+class ScanCancelledError(StationError):
+    """The operator cancelled the scan between frames; every frame shot so far is kept for a resume."""
+
+    exit_code = 2
+
+
+class ScanControl:
+    """Pause, resume and cancel from another thread (a dashboard), honoured between frames.
+
+    The session calls `checkpoint` before each exposure, once the turntable has confirmed it
+    stands at that frame's pose: a pause holds the rig still there, and a cancel stops the scan
+    with every frame so far in the manifest, so running the session again resumes it.
+    """
+
+    def __init__(self) -> None:
+        self._changed = threading.Condition()
+        self._paused = False
+        self._cancelled = False
+        self.current: PlannedFrame | None = None  # the frame the rig stands ready to shoot
+        self.holding = False  # True while a pause is in effect: the session waits, the rig is at rest
+
+    @property
+    def paused(self) -> bool:
+        """A pause was asked for; it takes effect at the next frame boundary (see `holding`)."""
+        return self._paused
+
+    def pause(self) -> None:
+        with self._changed:
+            self._paused = True
+
+    def resume(self) -> None:
+        with self._changed:
+            self._paused = self.holding = False
+            self._changed.notify_all()
+
+    def cancel(self) -> None:
+        with self._changed:
+            self._cancelled = True
+            self._changed.notify_all()
+
+    def checkpoint(self, frame: PlannedFrame) -> None:
+        """Block while paused (as long as the operator wants); raise ScanCancelledError once cancelled."""
+        with self._changed:
+            self.current = frame
+            while self._paused and not self._cancelled:
+                self.holding = True
+                self._changed.wait()
+            self.holding = False
+            if self._cancelled:
+                raise ScanCancelledError(f"scan cancelled by the operator before {frame.file}; run it again to resume")
+
+
 @dataclass
 class SessionConfig:
     move_timeout_s: float = 120.0
@@ -103,12 +156,14 @@ class ScanSession:
         stone_id: str,
         config: SessionConfig | None = None,
         progress: Callable[[int, int, str], None] | None = None,
+        control: ScanControl | None = None,
     ):
         self.scan, self.plan, self.rig = scan, plan, rig
         self.turntable, self.camera, self.operator = turntable, camera, operator
         self.stone_id = stone_id
         self.config = config or SessionConfig()
         self.progress = progress or (lambda done, total, what: None)
+        self.control = control or ScanControl()
 
     # ------------------------------------------------------------------------------------
     def run(self) -> ScanSummary:
@@ -138,6 +193,7 @@ class ScanSession:
         """Shoot frames in order; while frame k downloads and is written, the rig moves to k+1."""
         self._move(frames[0], summary)
         for k, frame in enumerate(frames):
+            self.control.checkpoint(frame)
             pending = self._trigger(frame, summary)
             following = frames[k + 1] if k + 1 < len(frames) else None
             overlap = following is not None and self.config.overlap_motion
