@@ -9,6 +9,7 @@ from typing import Optional
 import typer
 
 from station import __version__
+from station.cli_batch import batch_app
 from station.cli_serve import serve
 from station.cli_support import configure_logging, emit, err_console, exits_on_station_errors, parse_size, progress_reporter
 from station.errors import BadInputError
@@ -104,6 +105,16 @@ def import_command(
     emit(asdict(report), as_json, lambda r: err_console.print(f"imported {src} into {out}"))
 
 
+def _train_with_progress(scan_dir: Path, method: str, preset: str):
+    from station.ngs.pipeline import train_scan
+    from station.ngs.presets import make_config
+
+    total = make_config(method, preset).steps
+    with progress_reporter("train") as progress:
+        return train_scan(scan_dir, method=method, preset=preset,
+                          progress=lambda step, terms: progress(step, total, f"loss {terms['loss']:.4f}"))
+
+
 @app.command()
 @exits_on_station_errors
 def train(
@@ -115,12 +126,7 @@ def train(
     """Train the splat model (resumes from model/checkpoint.pt after an interruption)."""
     from dataclasses import asdict
 
-    from station.ngs.pipeline import train_scan
-    from station.ngs.presets import make_config
-
-    total = make_config(method, preset).steps
-    with progress_reporter("train") as progress:
-        report = train_scan(scan_dir, method=method, preset=preset, progress=lambda step, terms: progress(step, total, ""))
+    report = _train_with_progress(scan_dir, method, preset)
     emit(asdict(report), as_json, lambda r: err_console.print(f"trained {scan_dir} ({method}, {preset})"))
 
 
@@ -167,7 +173,6 @@ def _print_verdict(report, as_json: bool) -> None:
 def run_pipeline(scan_dir: Path, method: str, preset: str, reference: Path | None = None):
     """process -> train -> export, skipping stages already marked done (resumable)."""
     from station.export.stage import ExportConfig, export_scan
-    from station.ngs.pipeline import train_scan
     from station.process.stage import process_scan
     from station.scanfolder import ScanFolder
 
@@ -177,7 +182,7 @@ def run_pipeline(scan_dir: Path, method: str, preset: str, reference: Path | Non
         process_scan(scan_dir)
     if not scan.is_done("train"):
         err_console.print(f"train: {method}, {preset} preset ...")
-        train_scan(scan_dir, method=method, preset=preset)
+        _train_with_progress(scan_dir, method, preset)
     err_console.print("export: splats, mesh, gate, report ...")
     return export_scan(scan_dir, ExportConfig(reference_mesh=reference))
 
@@ -219,3 +224,4 @@ def demo(
 
 
 app.command("serve")(serve)
+app.add_typer(batch_app, name="batch")

@@ -1,15 +1,16 @@
-"""Masks from a clean plate: shadow- and drift-robust differencing, GrabCut, cleaning, self-check."""
+"""Masks from a clean plate: shadow- and drift-robust seed, graph cut against the plate, cleaning, self-check."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from station.errors import BadInputError
 from station.process.images_io import read_exr, read_mask_png, read_png16
-from station.process.masks import MaskSettings, check_masks, compute_mask
+from station.process.masks import MaskSettings, check_masks, compute_mask, shadow_field
 from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, sha256_bytes
 
 
@@ -61,10 +62,32 @@ def test_mask_ignores_contact_shadow_and_exposure_drift(look: str, shading: floa
     assert iou(mask, truth) >= 0.98
 
 
-@pytest.mark.xfail(strict=True, reason="a pale stone's shaded side darker than the backdrop reads as shadow")
+@pytest.mark.xfail(
+    strict=True,
+    reason="IoU 0.70: the lower half of this stone is smooth, grey and darker than the plate, so a smooth "
+    "shadow field explains it as well as the stone does; only the edge to the shadow below tells them apart",
+)
 def test_pale_stone_whose_shaded_side_is_darker_than_the_backdrop() -> None:
     shot, plate, truth = synthetic_pair("pale", shading=0.15)
     assert iou(compute_mask(shot, plate), truth) >= 0.98
+
+
+def test_shadow_field_continues_a_shadow_slope_under_the_stone() -> None:
+    yy = np.mgrid[0:60, 0:80][0].astype(np.float32)
+    darkening = -0.02 * yy  # log ratio: the shadow deepens down the frame
+    background = np.ones((60, 80), dtype=bool)
+    background[20:40, 30:50] = False  # where the stone hides the plate
+    field = shadow_field(darkening, background, sigma_px=4.0)
+    np.testing.assert_allclose(field[20:40, 30:50], darkening[20:40, 30:50], atol=0.005)
+
+
+def test_frames_larger_than_the_working_size_are_masked_there_and_resized_back() -> None:
+    shot, plate, truth = synthetic_pair("speckled")
+    big_shot, big_plate = (cv2.resize(x, (640, 480), interpolation=cv2.INTER_NEAREST) for x in (shot, plate))
+    big_truth = cv2.resize(truth.astype(np.uint8), (640, 480), interpolation=cv2.INTER_NEAREST).astype(bool)
+    mask = compute_mask(big_shot, big_plate, MaskSettings(max_working_side=320))
+    assert mask.shape == (480, 640) and mask.dtype == bool
+    assert iou(mask, big_truth) >= 0.98
 
 
 def test_shot_equal_to_plate_gives_an_empty_mask_that_the_check_flags() -> None:
@@ -127,28 +150,10 @@ def _sim_pair(look: str, elevation: float, folder: Path, size: tuple[int, int] =
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "look",
-    [
-        "dark",
-        "pale",
-        pytest.param(
-            "speckled",
-            marks=pytest.mark.xfail(
-                strict=True, reason="GrabCut cuts into the shaded side of a speckled stone: IoU 0.95-0.97"
-            ),
-        ),
-    ],
-)
+@pytest.mark.parametrize("look", ["dark", "pale", "speckled"])
 def test_sim_stone_mask_iou_meets_the_issue_target(look: str, tmp_path: Path) -> None:
     shot, plate, truth = _sim_pair(look, 45.0, tmp_path)
     assert iou(compute_mask(shot, plate, MaskSettings()), truth) >= 0.98
-
-
-@pytest.mark.slow
-def test_sim_speckled_stone_mask_stays_above_its_current_floor(tmp_path: Path) -> None:
-    shot, plate, truth = _sim_pair("speckled", 45.0, tmp_path)
-    assert iou(compute_mask(shot, plate), truth) >= 0.95
 
 
 @pytest.mark.slow

@@ -217,3 +217,15 @@ def test_visual_hull_counts_gaussians_that_a_mask_rejects():
     means = np.array([[0.0, 0.0, 0.0], [0.4, 0.4, 0.0], [0.01, -0.01, 0.0], [5.0, 5.0, 0.0]])
     # the last centre projects outside the frame: not judged, so 1 of 4 is outside
     assert fraction_outside_visual_hull(means, mask, K[None], c2w[None]) == pytest.approx(0.25)
+
+
+def test_visual_hull_tolerance_forgives_centres_on_the_mask_edge_but_not_floaters():
+    K = np.array([[10.0, 0, 5], [0, 10.0, 5], [0, 0, 1]])
+    c2w = look_at_c2w(np.array([0.0, 0.0, 1.0]), np.zeros(3), up=np.array([0.0, 1.0, 0.0]))
+    mask = np.zeros((1, 10, 10), bool)
+    mask[0, 3:7, 3:7] = True
+    edge = [0.25, 0.0, 0.0]  # projects to column 7, one pixel past the mask
+    floater = [-0.45, -0.45, 0.0]  # projects to (0, 0), far from the stone
+    means = np.array([[0.0, 0.0, 0.0], edge, floater])
+    assert fraction_outside_visual_hull(means, mask, K[None], c2w[None]) == pytest.approx(2 / 3)
+    assert fraction_outside_visual_hull(means, mask, K[None], c2w[None], tolerance_px=1) == pytest.approx(1 / 3)

@@ -81,6 +81,40 @@ def test_cpu_backend_matches_reference_images_and_gradients(sh_degree, render_mo
         assert_rel_close(grads[name], ref_grads[name], 1e-4, name)
 
 
+@pytest.mark.parametrize("render_mode", ["RGB", "RGB+ED"])
+def test_extra_channels_composite_with_the_colour_weights_and_agree_with_the_reference(render_mode):
+    width, height = 40, 36
+    scene = random_scene(120, width, height, cameras=2, sh_degree=1, seed=4)
+    flag = (torch.arange(120) % 3 == 0).float()[:, None]                              # [N, 1]
+    outputs = {}
+    for backend, dtype in (("cpu", torch.float32), ("torch", torch.float64)):
+        leaves = {k: v.to(dtype).clone().requires_grad_(k == "opacities") for k, v in scene.items()}
+        img, alpha, _ = rasterization(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"],
+                                      leaves["colors"], leaves["viewmats"], leaves["Ks"], width, height,
+                                      sh_degree=1, render_mode=render_mode, extra=flag.to(dtype), backend=backend)
+        (img[..., 3].sum() * 2 - alpha.sum()).backward()
+        outputs[backend] = (img.detach(), alpha.detach(), leaves["opacities"].grad)
+    img, alpha, grad = outputs["cpu"]
+    ref_img, ref_alpha, ref_grad = outputs["torch"]
+    assert img.shape == (2, height, width, 5 if render_mode == "RGB+ED" else 4)
+    torch.testing.assert_close(img[..., :4].double(), ref_img[..., :4], atol=1e-5, rtol=0)
+    assert_rel_close(grad, ref_grad, 1e-4, "opacities")
+    assert (img[..., 3] <= alpha[..., 0] + 1e-6).all() and img[..., 3].max() > 0.1  # a share of the alpha
+    plain, _, _ = rasterization(*(scene[k] for k in ("means", "quats", "scales", "opacities", "colors",
+                                                     "viewmats", "Ks")), width, height, sh_degree=1,
+                                render_mode=render_mode, backend="cpu")
+    torch.testing.assert_close(img[..., :3], plain[..., :3])
+    if render_mode == "RGB+ED":
+        torch.testing.assert_close(img[..., 4], plain[..., 3])
+
+
+def test_extra_channels_must_be_one_row_per_gaussian():
+    scene = random_scene(10, 16, 16, sh_degree=None)
+    with pytest.raises(BadInputError, match="extra must be"):
+        rasterization(*(scene[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")),
+                      16, 16, extra=torch.ones(9, 1))
+
+
 def test_gradcheck_float64_on_a_tiny_scene():
     width, height = 20, 16
     scene = random_scene(4, width, height, sh_degree=2, seed=3, dtype=torch.float64)

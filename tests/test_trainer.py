@@ -170,6 +170,18 @@ def test_ngs_phases_freeze_the_surface_then_the_noise_and_recolour_every_step(sc
         TINY.lr_means * trainer.scene.scene_scale * 0.01 ** (2 / (TINY.steps - ngs.freeze_step)))
 
 
+def test_after_the_freeze_the_foreground_alpha_loss_judges_the_surface_not_the_opaque_noise(scan, tmp_path):
+    runs = {}
+    for on in (True, False):
+        cfg = replace(TINY, ngs=replace(TINY.ngs, fg_on_surface=on))
+        trainer = Trainer(load_scene(scan[0]), cfg, tmp_path / str(on))
+        for step in range(trainer.ngs.freeze_step):
+            trainer.train_step(step)
+        runs[on] = trainer.train_step(trainer.ngs.freeze_step)
+    assert runs[True]["image"] == pytest.approx(runs[False]["image"], rel=1e-6)  # the same render
+    assert runs[True]["fg"] > runs[False]["fg"] + 1e-3  # the noise no longer stands in for the surface
+
+
 def test_a_nan_parameter_stops_training_naming_the_step_and_tensor(scan, tmp_path):
     trainer = Trainer(load_scene(scan[0]), TINY, tmp_path)
     trainer.train_step(0)

@@ -46,6 +46,10 @@ CREATE TABLE IF NOT EXISTS stage_log (
     at REAL NOT NULL
 );
 CREATE INDEX IF NOT EXISTS stage_log_job ON stage_log(job, stage);
+CREATE TABLE IF NOT EXISTS watches (
+    folder TEXT PRIMARY KEY,
+    added REAL NOT NULL
+);
 """
 
 
@@ -159,15 +163,31 @@ class JobStore:
         return self.get_by_id(job_id)
 
     def retry(self, scan: Path | str) -> Job:
-        """Operator action: give a parked or cancelled scan a fresh set of attempts."""
+        """Operator action: give a parked or cancelled scan a fresh set of attempts.
+
+        A `retried` line in the stage log marks where the fresh start begins: failures before it
+        (a diverged training run, a lost stage) no longer count against the scan."""
         job = self.get(scan)
+        now = self.clock()
+        with self._transaction() as db:
+            cursor = db.execute(
+                "UPDATE jobs SET state='queued', attempts=0, not_before=0, verdict=NULL, reason=NULL, updated=? "
+                "WHERE id=? AND state IN ('parked', 'cancelled', 'done')",
+                (now, job.id),
+            )
+            if cursor.rowcount:
+                db.execute("INSERT INTO stage_log(job, stage, key, event, detail, at) VALUES (?, 'job', '', 'retried', '{}', ?)",
+                           (job.id, now))
+        return self.get_by_id(job.id)
+
+    def release(self, job_id: int, worker: str) -> None:
+        """Hand a job back untouched (the runner is shutting down): queued again, no attempt spent."""
         with self._transaction() as db:
             db.execute(
-                "UPDATE jobs SET state='queued', attempts=0, not_before=0, reason=NULL, updated=? "
-                "WHERE id=? AND state IN ('parked', 'cancelled', 'done')",
-                (self.clock(), job.id),
+                "UPDATE jobs SET state='queued', lease_owner=NULL, lease_expires=NULL, updated=? "
+                "WHERE id=? AND lease_owner=? AND state='running'",
+                (self.clock(), job_id, worker),
             )
-        return self.get_by_id(job.id)
 
     def cancel(self, scan: Path | str) -> Job:
         job = self.get(scan)
@@ -191,6 +211,17 @@ class JobStore:
         with closing(self._connect()) as db:
             rows = db.execute("SELECT stage, key, event, detail, at FROM stage_log WHERE job=? ORDER BY id", (job_id,))
             return [dict(row) for row in rows]
+
+    # -- watched folders -------------------------------------------------------------------
+    def add_watch(self, folder: Path | str) -> None:
+        """Remember a folder whose finished scans the runner keeps adding (`station batch add --watch`)."""
+        with self._transaction() as db:
+            db.execute("INSERT OR IGNORE INTO watches(folder, added) VALUES (?, ?)",
+                       (str(Path(folder).resolve()), self.clock()))
+
+    def watches(self) -> list[Path]:
+        with closing(self._connect()) as db:
+            return [Path(row["folder"]) for row in db.execute("SELECT folder FROM watches ORDER BY added")]
 
     # -- reads -----------------------------------------------------------------------------
     def get(self, scan: Path | str) -> Job:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 import trimesh
 
 from station.errors import BadInputError
@@ -82,18 +83,22 @@ def compare_meshes(
 
 
 def fraction_outside_visual_hull(
-    means: np.ndarray, masks: np.ndarray, Ks: np.ndarray, c2ws: np.ndarray
+    means: np.ndarray, masks: np.ndarray, Ks: np.ndarray, c2ws: np.ndarray, tolerance_px: int = 0
 ) -> float:
     """Fraction of Gaussian centres that some view sees outside its foreground mask.
 
     means [N, 3]; masks [V, H, W] bool (True = stone); Ks [V, 3, 3]; c2ws [V, 4, 4] OpenCV.
     A centre that projects outside a view's frame or behind its camera is not judged by it.
+    `tolerance_px` grows every mask by that many pixels first: surface Gaussians sit on the
+    silhouette, and a pixel-quantised mask edge would otherwise reject half of them.
     """
     masks = np.asarray(masks, bool)
     if masks.ndim != 3 or Ks.shape != (len(masks), 3, 3) or c2ws.shape != (len(masks), 4, 4):
         raise BadInputError(f"visual hull: masks {masks.shape}, Ks {Ks.shape}, c2ws {c2ws.shape} disagree")
     if len(means) == 0:
         return 0.0
+    if tolerance_px > 0:
+        masks = binary_dilation(masks, structure=np.ones((1, 3, 3), bool), iterations=tolerance_px)
     _, height, width = masks.shape
     outside = np.zeros(len(means), bool)
     for mask, K, c2w in zip(masks, Ks, c2ws):

@@ -54,6 +54,7 @@ class ExportConfig:
     reference_mesh: Path | None = None  # a known-true mesh (laser scan, simulator truth) to score the mesh against
     truth_samples: int = 20_000  # surface samples per mesh for the geometry errors
     report_views: int = 4  # held-out views shown in the report
+    hull_tolerance: float = 0.01  # mask edge allowance of the floater check, as a share of the longer image side
     strip_views: int = 8  # views in the report's turntable strip
 
 
@@ -165,13 +166,14 @@ def _write_mesh(model: SplatModel, scene: SceneData, body: np.ndarray, body_grid
     return mesh
 
 
-def _hull_fraction(model: SplatModel, scene: SceneData) -> float | None:
+def _hull_fraction(model: SplatModel, scene: SceneData, config: ExportConfig) -> float | None:
     views = [v for v in scene.train + scene.test if v.mask is not None]
     if not views:
         return None
     masks = np.stack([v.mask.numpy() > 0.5 for v in views])  # [V, H, W]
     Ks = np.stack([v.K.double().numpy() for v in views])
-    return fraction_outside_visual_hull(model.means.astype(np.float64), masks, Ks, _c2ws(views))
+    tolerance = max(2, round(config.hull_tolerance * max(masks.shape[1:])))
+    return fraction_outside_visual_hull(model.means.astype(np.float64), masks, Ks, _c2ws(views), tolerance)
 
 
 def _quarantine_text(scan: ScanFolder, gate: GateResult) -> str:
@@ -211,7 +213,7 @@ def export_scan(scan_root: Path, config: ExportConfig | None = None) -> ExportRe
     if config.stl:
         files["mesh.stl"] = asset / "mesh.stl"
     mesh = _write_mesh(model, scene, body, body_grid, config, files, metrics)
-    metrics["outside_hull_fraction"] = _hull_fraction(model, scene)
+    metrics["outside_hull_fraction"] = _hull_fraction(model, scene, config)
     if config.reference_mesh is not None and mesh is not None:
         if not Path(config.reference_mesh).is_file():
             raise BadInputError(f"{config.reference_mesh}: reference mesh not found")

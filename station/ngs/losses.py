@@ -80,24 +80,29 @@ def image_loss(render: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None
     return (1 - cfg.ssim_lambda) * l1 + cfg.ssim_lambda * (1 - ssim(render, gt))
 
 
-def alpha_losses(alpha: torch.Tensor, mask: torch.Tensor, cfg: LossConfig) -> dict[str, torch.Tensor]:
-    """L_bg = sum a(1-M)/sum(1-M); L_fg = sum (1-a)M_e/sum M_e. alpha, mask: [H,W]."""
+def alpha_losses(alpha: torch.Tensor, mask: torch.Tensor, cfg: LossConfig,
+                 fg_alpha: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """L_bg = sum a(1-M)/sum(1-M); L_fg = sum (1-a')M_e/sum M_e, a' = fg_alpha or alpha. All [H,W]."""
     terms: dict[str, torch.Tensor] = {}
     if cfg.bg_weight > 0:
         background = 1 - mask
         terms["bg"] = cfg.bg_weight * (alpha * background).sum() / background.sum().clamp_min(1e-6)
     if cfg.fg_weight > 0:
         interior = erode_mask(mask)
-        terms["fg"] = cfg.fg_weight * ((1 - alpha) * interior).sum() / interior.sum().clamp_min(1e-6)
+        seen = alpha if fg_alpha is None else fg_alpha
+        terms["fg"] = cfg.fg_weight * ((1 - seen) * interior).sum() / interior.sum().clamp_min(1e-6)
     return terms
 
 
 def total_loss(
-    render: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None, cfg: LossConfig
+    render: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None, cfg: LossConfig,
+    fg_alpha: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """render/gt [H,W,3], alpha [H,W], mask [H,W] or None (then only the image term)."""
+    """render/gt [H,W,3], alpha [H,W], mask [H,W] or None (then only the image term).
+
+    fg_alpha: the alpha L_fg judges when it is not the rendered one (NGS: the surface's own share)."""
     terms = {"image": image_loss(render, gt, mask, cfg)}
     if mask is not None:
-        terms.update(alpha_losses(alpha, mask, cfg))
+        terms.update(alpha_losses(alpha, mask, cfg, fg_alpha))
     loss = torch.stack(list(terms.values())).sum()
     return loss, {name: float(value.detach()) for name, value in terms.items()}

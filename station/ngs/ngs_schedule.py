@@ -32,6 +32,10 @@ class NGSConfig:
     noise_prune_opacity: float = 0.01
     lr_reset: bool = True  # ablation switch "no LR reset"
     recolour: bool = True  # ablation switch "no colour reset"
+    # Once the noise is opaque it fills the mask's alpha by itself, and L_fg on the rendered alpha falls
+    # silent. Ours then judges the surface's own alpha (rendered alpha minus the noise's weight), so the
+    # pull towards an opaque surface continues to the end. False is the reference's behaviour.
+    fg_on_surface: bool = True
     infill: InfillConfig = field(default_factory=InfillConfig)
 
 
@@ -53,6 +57,10 @@ class NGSPhases:
 
     def surface_frozen(self, step: int) -> bool:
         return self.build_step <= step < self.freeze_step
+
+    def fg_on_surface(self, step: int) -> bool:
+        """L_fg looks at the surface's own alpha from the freeze on (see NGSConfig.fg_on_surface)."""
+        return self.cfg.fg_on_surface and self.infill is not None and step >= self.freeze_step
 
     def means_lr_factor(self, step: int) -> float:
         """Exponential decay to 1%, restarted at the freeze when the LR reset is on."""

@@ -47,11 +47,14 @@ def _check_finite(name: str, x: Tensor) -> None:
 
 
 def _validate(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, viewmats: Tensor,
-              Ks: Tensor, width: int, height: int, sh_degree: int | None, backgrounds: Tensor | None) -> None:
+              Ks: Tensor, width: int, height: int, sh_degree: int | None, backgrounds: Tensor | None,
+              extra: Tensor | None = None) -> None:
     named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
              "viewmats": viewmats, "Ks": Ks}
     if backgrounds is not None:
         named["backgrounds"] = backgrounds
+    if extra is not None:
+        named["extra"] = extra
     for name, x in named.items():
         _check_finite(name, x)
     n = means.shape[0] if means.dim() == 2 else -1
@@ -59,6 +62,8 @@ def _validate(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     for name, shape in expected.items():
         if tuple(named[name].shape) != shape or n < 0:
             raise BadInputError(f"rasterization: {name} must have shape {shape} for N={n}, got {tuple(named[name].shape)}")
+    if extra is not None and (extra.dim() != 2 or extra.shape[0] != n):
+        raise BadInputError(f"rasterization: extra must be [N, E] for N={n}, got {tuple(extra.shape)}")
     if sh_degree is None:
         if tuple(colors.shape) != (n, 3):
             raise BadInputError(f"rasterization: colors must be [N, 3] RGB without sh_degree, got {tuple(colors.shape)}")
@@ -117,33 +122,39 @@ def rasterization(
     far_plane: float = 1e10,
     backgrounds: Tensor | None = None,  # [C, 3]
     render_mode: RenderMode = "RGB",
+    extra: Tensor | None = None,  # [N, E] per-Gaussian features composited beside the colour, background 0
     backend: Backend = "auto",
 ) -> tuple[Tensor, Tensor, dict]:
-    """Render C cameras -> colours [C,H,W,3] (+ expected depth as a 4th channel for "RGB+ED"), alphas [C,H,W,1], meta.
+    """Render C cameras -> colours [C,H,W,3] (then E `extra` channels, then expected depth for "RGB+ED"),
+    alphas [C,H,W,1], meta.
+
+    `extra` composites any per-Gaussian quantity with the same weights as the colour, e.g. a 0/1 flag
+    gives each pixel the weight of the flagged Gaussians (NGS: how much of the infill shows).
 
     Expected depth follows gsplat: sum(w_i z_i) / sum(w_i), i.e. normalised by the rendered alpha (0 where
     alpha is 0). meta holds "means2d" [C,N,2] (call .retain_grad() on it before backward for densification
     statistics), "radii" [C,N] int32 (0 = culled), "depths" [C,N], "width", "height".
     """
-    _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds)
+    _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, backgrounds, extra)
     if render_mode not in ("RGB", "RGB+ED"):
         raise BadInputError(f"rasterization: unknown render_mode {render_mode!r}")
     width, height = int(width), int(height)
     chosen = _resolve_backend(backend, means.device)
     if chosen == "gsplat":
         return _gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
-                       near_plane, far_plane, backgrounds, render_mode)
+                       near_plane, far_plane, backgrounds, render_mode, extra)
     render, alphas, meta = _render(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
-                                   near_plane, far_plane, backgrounds, render_mode == "RGB+ED", chosen == "cpu")
+                                   near_plane, far_plane, backgrounds, render_mode == "RGB+ED", chosen == "cpu", extra)
     if render_mode == "RGB+ED":
-        depth = render[..., 3:4] / alphas.clamp(min=1e-10)
-        render = torch.cat([render[..., :3], depth], dim=-1)
+        depth = render[..., -1:] / alphas.clamp(min=1e-10)
+        render = torch.cat([render[..., :-1], depth], dim=-1)
     meta.update(width=width, height=height)
     return render, alphas, meta
 
 
 def _render(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, near_plane,
-            far_plane, backgrounds, with_depth: bool, compiled: bool) -> tuple[Tensor, Tensor, dict]:
+            far_plane, backgrounds, with_depth: bool, compiled: bool,
+            extra: Tensor | None = None) -> tuple[Tensor, Tensor, dict]:
     if compiled:
         coeffs = colors if sh_degree is not None else colors[:, None, :]              # [N, K, 3]
         means2d, conics, depths, radii, sh_rgb = _Project.apply(
@@ -161,9 +172,10 @@ def _render(means, quats, scales, opacities, colors, viewmats, Ks, width, height
         else:
             dirs = means - ref.camera_centres(viewmats[c:c + 1])                  # [N, 3]
             rgb = ref.eval_sh(sh_degree, dirs, colors[:, : (sh_degree + 1) ** 2])
-        feats = torch.cat([rgb, depths[c, :, None]], dim=-1) if with_depth else rgb  # [N, D]
+        parts = [rgb] + ([extra] if extra is not None else []) + ([depths[c, :, None]] if with_depth else [])
+        feats = torch.cat(parts, dim=-1) if len(parts) > 1 else rgb                          # [N, D]
         bg = backgrounds[c] if backgrounds is not None else means.new_zeros(3)             # [3]
-        bg = torch.cat([bg, bg.new_zeros(1)]) if with_depth else bg                         # [D]
+        bg = torch.cat([bg, bg.new_zeros(feats.shape[1] - 3)])                              # [D]
         if compiled:
             img, alpha = _Rasterize.apply(means2d[c], conics[c], feats, opacities, radii[c], depths[c], bg,
                                           width, height)
@@ -230,10 +242,19 @@ class _Rasterize(torch.autograd.Function):
 
 
 def _gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, near_plane, far_plane,
-            backgrounds, render_mode) -> tuple[Tensor, Tensor, dict]:
+            backgrounds, render_mode, extra) -> tuple[Tensor, Tensor, dict]:
     """CUDA path through gsplat (imported only here). Untested in this repository: no GPU in CI."""
     import gsplat
 
+    if extra is not None:  # gsplat composites any channel count only for ready colours: evaluate SH here
+        rgb = colors if sh_degree is None else torch.stack([
+            ref.eval_sh(sh_degree, means - ref.camera_centres(viewmats[c:c + 1]), colors[:, : (sh_degree + 1) ** 2])
+            for c in range(viewmats.shape[0])])
+        rgb = rgb.expand(viewmats.shape[0], -1, -1)                                                # [C, N, 3]
+        colors = torch.cat([rgb, extra.expand(viewmats.shape[0], -1, -1)], dim=-1)                 # [C, N, 3+E]
+        if backgrounds is not None:
+            backgrounds = torch.cat([backgrounds, backgrounds.new_zeros(backgrounds.shape[0], extra.shape[1])], -1)
+        sh_degree = None
     render, alphas, g_meta = gsplat.rasterization(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
         far_plane=far_plane, sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,

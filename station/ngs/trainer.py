@@ -8,6 +8,7 @@ killed run continues where it stopped.
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -27,6 +28,9 @@ from station.scanfolder import atomic_write_with
 
 Method = Literal["3dgs", "alpha", "ngs"]
 CHECKPOINT = "checkpoint.pt"
+# Fault injection for the batch tests: "STEP:MODEL_DIR" writes a NaN into one mean at STEP of the
+# run whose model folder is MODEL_DIR, so the loop's own check_finite guard is what stops it.
+INJECT_NAN_ENV = "STATION_TEST_INJECT_NAN"
 
 
 @dataclass
@@ -63,6 +67,12 @@ class TrainReport:
     model_dir: str
 
 
+def injected_nan_step(model_dir: Path) -> int | None:
+    """The step INJECT_NAN_ENV poisons for this model folder, or None (always, outside the tests)."""
+    step, _, folder = os.environ.get(INJECT_NAN_ENV, "").partition(":")
+    return int(step) if step.isdigit() and folder and Path(folder).resolve() == model_dir.resolve() else None
+
+
 def check_finite(step: int, named: dict[str, torch.Tensor]) -> None:
     for name, tensor in named.items():
         if not bool(torch.isfinite(tensor).all()):
@@ -82,6 +92,7 @@ class Trainer:
         self.seconds = 0.0
         self.losses: list[dict] = []
         self.evals: list[dict] = []
+        self.nan_step = injected_nan_step(self.model_dir)
 
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         lrs = {
@@ -104,6 +115,9 @@ class Trainer:
 
     def train_step(self, step: int) -> dict[str, float]:
         """One image, one Adam step; densification and NGS hooks around it."""
+        if step == self.nan_step:
+            with torch.no_grad():
+                self.model.params["means"][0, 0] = float("nan")
         check_finite(step, {f"parameter {k}": v for k, v in self.model.params.items()})
         view = self.scene.train[int(torch.randint(len(self.scene.train), (1,), generator=self.generator))]
         if self.ngs:
@@ -114,16 +128,20 @@ class Trainer:
         self.optimizers["means"].param_groups[0]["lr"] = self.means_lr_at(step)
         g = self.model.activated()
         noise = self.ngs.noise(g["colors"].shape[1]) if self.ngs else None
+        surface_fg = bool(noise is not None and self.ngs.fg_on_surface(step))
+        is_noise = torch.cat([torch.zeros(len(self.model), 1), torch.ones(len(noise["means"]), 1)]) if surface_fg else None
         if noise is not None:
             g = {k: torch.cat([g[k], noise[k]]) for k in g}
         colors, alphas, meta = rasterization(
             g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
             view.viewmat[None], view.K[None], view.width, view.height,
-            sh_degree=self.sh_degree_at(step), backend=self.cfg.backend,
-        )  # [1, H, W, 3], [1, H, W, 1]
+            sh_degree=self.sh_degree_at(step), extra=is_noise, backend=self.cfg.backend,
+        )  # [1, H, W, 3 (+1: the noise's weight)], [1, H, W, 1]
         if not frozen:
             self.strategy.step_pre_backward(meta)
-        loss, terms = total_loss(colors[0], alphas[0, ..., 0], view.image, view.mask, self.cfg.loss)
+        alpha = alphas[0, ..., 0]
+        surface_alpha = alpha - colors[0, ..., 3] if surface_fg else None
+        loss, terms = total_loss(colors[0, ..., :3], alpha, view.image, view.mask, self.cfg.loss, surface_alpha)
         check_finite(step, {"loss": loss})
         if loss.requires_grad:  # False only when the surface is frozen and no noise survived
             loss.backward()

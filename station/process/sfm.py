@@ -3,10 +3,16 @@
 Turntable scans fool plain SfM (the static backdrop matches in every pair), so features are
 only extracted inside the masks. Poses are expressed as OpenCV camera-to-world 4x4 matrices
 everywhere outside this module; COLMAP's world-to-camera `Rigid3d` never leaks out.
+COLMAP's own glog lines (several per image, and a warning per discarded partial model) are
+shown only when this module's logger is at DEBUG (`station --verbose`); otherwise only its errors
+pass, since each stage reports what came of them (registered views, flags).
 """
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +21,8 @@ import numpy as np
 import pycolmap
 
 from station.errors import BadInputError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -55,6 +63,18 @@ class SfmSettings:
     refine_principal_point: bool = False  # only when intrinsics are unknown and the views ring the object
 
 
+@contextmanager
+def colmap_log_level() -> Iterator[None]:
+    """Raise COLMAP's glog threshold to ERROR for the duration, unless we log at DEBUG; restore it after."""
+    previous = pycolmap.logging.minloglevel
+    if not log.isEnabledFor(logging.DEBUG):
+        pycolmap.logging.minloglevel = max(previous, int(pycolmap.logging.Level.ERROR))
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = previous
+
+
 def write_colmap_masks(masks: dict[str, np.ndarray], folder: Path, erode_px: int) -> None:
     """COLMAP reads the mask of image `name` from `folder/name.png`; zero pixels get no features."""
     kernel = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8) if erode_px > 0 else None
@@ -67,6 +87,7 @@ def write_colmap_masks(masks: dict[str, np.ndarray], folder: Path, erode_px: int
         cv2.imwrite(str(out), m)
 
 
+@colmap_log_level()
 def extract_and_match(
     database: Path,
     image_dir: Path,
@@ -143,6 +164,7 @@ def reconstruction_from_poses(database: Path, c2w_by_name: dict[str, np.ndarray]
     return rec
 
 
+@colmap_log_level()
 def triangulate_fixed(
     rec: pycolmap.Reconstruction, database: Path, image_dir: Path, out_dir: Path, settings: SfmSettings
 ) -> pycolmap.Reconstruction:
@@ -173,6 +195,7 @@ def write_position_priors(database: Path, centre_by_name: dict[str, np.ndarray])
         db.close()
 
 
+@colmap_log_level()
 def map_incremental(
     database: Path,
     image_dir: Path,

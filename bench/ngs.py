@@ -1,0 +1,135 @@
+"""3DGS vs 3DGS+alpha vs NGS on a simulated stone: held-out PSNR/PSNR*/SSIM, SOS, counts, time.
+
+Each method trains on the same processed scan with the same preset (all three share every step
+count and learning rate; only the losses and the infill differ), then is scored with the NGS run's
+infill, as the paper does, so SOS compares like with like. `--ablations` adds the paper's
+ablations of NGS (no erosion, no pruning, no L_f, no LR reset, no colour reset). Held-out PSNR is
+sampled during training, so the JSON also holds speed against error for every run.
+
+    python bench/ngs.py [--scan SCAN] [--stone LOOK:SEED] [--size 320x240] [--preset fast] [--ablations]
+
+Without --scan a 6x40 simulated scan is shot and processed first (a few minutes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from rich.console import Console
+from rich.table import Table
+
+from station.ngs.dataset import load_scene
+from station.ngs.infill import Infill
+from station.ngs.pipeline import write_model
+from station.ngs.presets import make_config
+from station.ngs.sos import evaluate, load_surface
+from station.ngs.trainer import TrainConfig, Trainer
+from station.scanfolder import ScanFolder, atomic_write_json
+
+RESULTS = Path(__file__).parent / "results" / "ngs.json"
+
+
+def ablations(cfg: TrainConfig) -> dict[str, TrainConfig]:
+    """The paper's ablations of NGS, each one switch off."""
+    ngs, infill = cfg.ngs, cfg.ngs.infill
+    return {
+        "ngs: no erosion": replace(cfg, ngs=replace(ngs, infill=replace(infill, erosion=False))),
+        "ngs: no pruning": replace(cfg, ngs=replace(ngs, infill=replace(infill, depth_prune=False))),
+        "ngs: no L_f": replace(cfg, loss=replace(cfg.loss, fg_weight=0.0)),
+        "ngs: no LR reset": replace(cfg, ngs=replace(ngs, lr_reset=False)),
+        "ngs: no colour reset": replace(cfg, ngs=replace(ngs, recolour=False)),
+    }
+
+
+def shoot_and_process(root: Path, stone: str | None, size: str) -> Path:
+    scan = root / "scan"
+    command = [sys.executable, "-m", "station", "scan", "--sim", "--out", str(scan), "--size", size, "--time-scale", "0.01"]
+    if stone:
+        command += ["--stone", stone]
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([sys.executable, "-m", "station", "process", str(scan)], check=True, stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL)
+    return scan
+
+
+def train_one(source: Path, work: Path, name: str, cfg: TrainConfig) -> Path:
+    """Train `cfg` on a copy of the posed part of `source`; returns the run's scan folder."""
+    run = work / name.replace(" ", "_").replace(":", "")
+    for sub in ("images", "masks", "poses"):
+        shutil.copytree(source / sub, run / sub)
+    scene = load_scene(run, downscale=cfg.downscale, seed=cfg.seed)
+    trainer = Trainer(scene, cfg, run / "model")
+    write_model(trainer, trainer.run())
+    return run
+
+
+def score(run: Path, infill: Infill) -> dict:
+    scan = ScanFolder(run)
+    surface, downscale = load_surface(scan)
+    scene = load_scene(run, downscale=downscale)
+    metrics = evaluate(surface, infill, scene.test)
+    metrics.pop("views")
+    train = scan.read_json(scan.model_dir / "train_metrics.json")
+    return {**metrics, "train_seconds": train["report"]["seconds"], "held_out_curve": train["held_out"]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--scan", type=Path, help="a processed scan folder (default: shoot and process one)")
+    parser.add_argument("--stone", default=None, help="simulated stone: seed, look:seed or a mesh path")
+    parser.add_argument("--size", default="320x240")
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--ablations", action="store_true")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        source = args.scan or shoot_and_process(work, args.stone, args.size)
+        runs = {method: make_config(method, args.preset) for method in ("3dgs", "alpha", "ngs")}
+        if args.ablations:
+            runs.update(ablations(runs["ngs"]))
+        trained = {}
+        for name, cfg in runs.items():
+            started = time.perf_counter()
+            trained[name] = train_one(source, work, name, cfg)
+            print(f"{name}: trained in {time.perf_counter() - started:.0f} s", file=sys.stderr)
+        # One infill for every score: the full NGS run's, the paper's benchmark use of it.
+        infill = Infill.from_state_dict(torch.load(trained["ngs"] / "model" / "infill.pt", weights_only=True))
+        rows = {name: score(run, infill) for name, run in trained.items()}
+
+    best_psnr = max(r["psnr"] for r in rows.values())
+    result = {
+        "benchmark": "ngs",
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "threads": os.cpu_count(),
+        "scan": str(args.scan or f"simulated {args.stone or 'default stone'} at {args.size}, 6x40"),
+        "preset": args.preset,
+        "peer": "3dgs and 3dgs+alpha, same preset, same run, scored with the NGS infill",
+        "methods": rows,
+        "ngs_psnr_gap_to_best_db": round(best_psnr - rows["ngs"]["psnr"], 3),
+    }
+    atomic_write_json(args.out, result)
+
+    table = Table(title=f"NGS against its baselines ({args.preset} preset)")
+    for column in ("method", "PSNR", "PSNR*", "SSIM", "SOS", "Gaussians", "scoring infill", "train s"):
+        table.add_column(column, justify="right" if column != "method" else "left")
+    for name, r in rows.items():
+        table.add_row(name, f"{r['psnr']:.2f}", f"{r['psnr_star']:.2f}", f"{r['ssim']:.4f}", f"{r['sos']:.3f}",
+                      str(r["num_gaussians"]), str(r["num_infill"]), f"{r['train_seconds']:.0f}")
+    Console().print(table)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,321 @@
+"""Process benchmark: develop speed against rawpy's own default, and posing time and error against views.
+
+(a) Develop: seconds per megapixel of `develop_raw` (LibRaw AHD, linear 16-bit, colour matrix, stats)
+    against rawpy's default `postprocess()` (AHD, 8-bit sRGB, auto-bright) on the same file, in the
+    same run: simulated DNGs of several sizes and the real raws in ../shared/data/raw when present.
+    Also the seconds per image of the masks (no peer: nothing else here masks against a plate).
+(b) Posing: one simulated 6 x 40 scan of a speckled stone (rendered, exposed, DNG-encoded, developed
+    and masked by `develop_scan`), posed on subsets of 40, 120 and 240 views by the rig path (rig
+    poses + triangulation + prior-guided cross-check mapping) and by the pure-SfM fallback (bounded by
+    COLMAP's max runtime). Errors are against sim_truth/cameras.json: rotation in degrees and camera
+    centre as % of the orbit radius; rig-path poses are compared as they are (rig frame), SfM poses
+    after a similarity alignment to the truth.
+
+    python bench/process.py [--size 480x360] [--views 40,120,240] [--sfm-views 40,120,240] [--repeats 3]
+
+The posing scan is 480x360 by default, not the 640x480 the posing tests use: at 640x480, rendering
+and developing the 246 frames alone took 7 minutes on the shared 2-core bench machine, and posing
+240 views grows with the square of the view count (exhaustive matching), past a 15-minute budget.
+
+Prints tables and writes bench/results/process.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rawpy
+from rich.console import Console
+from rich.table import Table
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from sim.dng import dng_bytes  # noqa: E402
+from sim.scene import World, render  # noqa: E402
+from sim.sensor import SensorModel  # noqa: E402
+from sim.stone import procedural_stone  # noqa: E402
+from sim.truth import write_truth_frame  # noqa: E402
+from station.capture.plan import default_elevations  # noqa: E402
+from station.process.develop import DevelopSettings, develop_raw  # noqa: E402
+from station.process.develop_stage import develop_scan  # noqa: E402
+from station.process.masks import compute_mask  # noqa: E402
+from station.process.poses import PoseSettings, pose_scan  # noqa: E402
+from station.process.rig_model import RigModel, rotation_angle_deg, umeyama  # noqa: E402
+from station.process.sfm import SfmSettings  # noqa: E402
+from station.process.transforms import read_transforms  # noqa: E402
+from station.rig_geometry import RigGeometry  # noqa: E402
+from station.scanfolder import (  # noqa: E402
+    ManifestEntry, ScanFolder, atomic_write_bytes, atomic_write_json, sha256_bytes,
+)
+
+SHARED_RAW = Path(__file__).resolve().parents[2] / "shared" / "data" / "raw"
+RAW_SUFFIXES = (".dng", ".crw", ".cr2", ".nef", ".arw", ".kdc", ".orf", ".raf", ".rw2")
+AZIMUTHS = 40
+EXPOSURE_S = 1 / 30
+THREADS = 2  # SfmSettings.num_threads; LibRaw's AHD runs on one thread
+
+
+def _median_seconds(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - started)
+    return float(np.median(times))
+
+
+def _sim_dng(path: Path, width: int, height: int) -> None:
+    """A DNG of a rendered stone, resized to the sensor size (develop cost does not depend on content)."""
+    world = World(procedural_stone(3, look="speckled"), rig=RigGeometry().scaled(640, 480))
+    radiance = cv2.resize(render(world, 40.0, 0.0).radiance, (width, height), interpolation=cv2.INTER_LINEAR)
+    sensor = SensorModel()
+    path.write_bytes(dng_bytes(sensor.expose(radiance, EXPOSURE_S, 100, np.random.default_rng(0)), sensor))
+
+
+def develop_rows(work: Path, sizes: list[tuple[int, int]], repeats: int) -> list[dict]:
+    """Our develop and rawpy's default postprocess on each raw, timed back to back, file open included."""
+    sources = []
+    for width, height in sizes:
+        path = work / f"sim_{width}x{height}.dng"
+        _sim_dng(path, width, height)
+        sources.append(("simulated DNG", path))
+    if SHARED_RAW.is_dir():
+        sources += [("real raw", p) for p in sorted(SHARED_RAW.iterdir()) if p.suffix.lower() in RAW_SUFFIXES]
+
+    def peer(path: Path) -> None:
+        with rawpy.imread(str(path)) as raw:
+            raw.postprocess()
+
+    rows = []
+    for kind, path in sources:
+        with rawpy.imread(str(path)) as raw:
+            height, width = raw.raw_image_visible.shape
+        megapixels = width * height / 1e6
+        ours = _median_seconds(lambda: develop_raw(path, DevelopSettings()), repeats)
+        theirs = _median_seconds(lambda: peer(path), repeats)
+        rows.append({
+            "source": path.name, "kind": kind, "width": width, "height": height, "megapixels": round(megapixels, 3),
+            "ours_s": round(ours, 4), "ours_s_per_mp": round(ours / megapixels, 4),
+            "rawpy_default_s": round(theirs, 4), "rawpy_default_s_per_mp": round(theirs / megapixels, 4),
+            "ours_over_rawpy": round(ours / theirs, 3),
+        })
+    return rows
+
+
+def mask_rows(sizes: list[tuple[int, int]], repeats: int) -> list[dict]:
+    """Seconds per image of `compute_mask` on developed shot/plate pairs (frames over 1280 px are masked
+    at 1280 px and the mask resized back, see MaskSettings.max_working_side)."""
+    world = World(procedural_stone(3, look="speckled"), rig=RigGeometry().scaled(640, 480))
+    shot, plate = (render(world, 45.0, 90.0, stone_present=p).radiance for p in (True, False))
+    sensor, rows = SensorModel(), []
+    for width, height in sizes:
+        developed = []
+        for noise_seed, radiance in enumerate((shot, plate)):  # each frame its own noise, as on a camera
+            big = cv2.resize(radiance, (width, height), interpolation=cv2.INTER_LINEAR)
+            rng = np.random.default_rng(noise_seed)
+            with tempfile.NamedTemporaryFile(suffix=".dng") as handle:
+                handle.write(dng_bytes(sensor.expose(big, EXPOSURE_S, 100, rng), sensor))
+                handle.flush()
+                developed.append(develop_raw(Path(handle.name), DevelopSettings()).linear)
+        seconds = _median_seconds(lambda: compute_mask(*developed), repeats)
+        rows.append({"width": width, "height": height, "seconds": round(seconds, 3)})
+    return rows
+
+
+def _frame_name(e_index: int, a_index: int) -> str:
+    return f"e{e_index}_a{a_index:03d}"
+
+
+def make_scan(root: Path, rig: RigGeometry, elevations: tuple[float, ...], seed: int = 11) -> ScanFolder:
+    """A 6 x 40 scan as capture leaves it: raw DNGs (one plate per elevation), manifest, scan.json, sim_truth/."""
+    world = World(procedural_stone(seed, size_m=0.09, look="speckled"), rig)
+    sensor = SensorModel()
+    scan = ScanFolder(root)
+    entries = []
+    for i, elevation in enumerate(elevations):
+        for j in [None, *range(AZIMUTHS)]:
+            azimuth = 0.0 if j is None else 360.0 * j / AZIMUTHS
+            name = f"raw/{'plate_e%d' % i if j is None else _frame_name(i, j)}.dng"
+            out = render(world, elevation, azimuth, stone_present=j is not None)
+            rng = np.random.default_rng([seed, i, AZIMUTHS if j is None else j])
+            data = dng_bytes(sensor.expose(out.radiance, EXPOSURE_S, 100, rng), sensor)
+            atomic_write_bytes(scan.root / name, data)
+            kind = "plate" if j is None else "shot"
+            entries.append(ManifestEntry(name, sha256_bytes(data), elevation, azimuth, kind, EXPOSURE_S, 100, ""))
+            write_truth_frame(scan.root, world, name, elevation, azimuth, mask=out.mask)
+    scan.write_manifest(entries)
+    atomic_write_json(scan.scan_json, {"rig": rig.to_dict(),
+                                       "plan": {"elevations_deg": list(elevations), "azimuths": AZIMUTHS}})
+    return scan
+
+
+# views -> (elevation ring indices into the 6 planned rings, azimuths per ring)
+SUBSETS = {40: ((1, 4), 20), 120: ((0, 2, 4), 40), 240: ((0, 1, 2, 3, 4, 5), 40)}
+
+
+def view_subset(count: int) -> list[tuple[int, int]]:
+    """(elevation index, azimuth index) of a `count`-view subset of the 6 x 40 scan."""
+    rings, per_ring = SUBSETS[count]
+    step = AZIMUTHS // per_ring
+    return [(e, k * step) for e in rings for k in range(per_ring)]
+
+
+def subset_scan(full: ScanFolder, root: Path, views: list[tuple[int, int]]) -> ScanFolder:
+    """A developed scan folder holding only `views`: images, masks, manifest and scan.json."""
+    scan = ScanFolder(root)
+    scan.images_dir.mkdir(parents=True)
+    scan.masks_dir.mkdir()
+    keep = {_frame_name(e, a) for e, a in views}
+    entries = [e for e in full.read_manifest() if e.kind == "shot" and Path(e.file).stem in keep]
+    for entry in entries:
+        stem = Path(entry.file).stem
+        shutil.copy(full.images_dir / f"{stem}.png", scan.images_dir / f"{stem}.png")
+        shutil.copy(full.masks_dir / f"{stem}.png", scan.masks_dir / f"{stem}.png")
+    scan.write_manifest(entries)
+    record = full.read_scan_json()
+    record["plan"]["elevations_deg"] = sorted({e.elevation_deg for e in entries})
+    atomic_write_json(scan.scan_json, record)
+    return scan
+
+
+def pose_errors(scan: ScanFolder, truth: dict[str, np.ndarray], radius: float, align: bool) -> dict:
+    """Rotation (deg) and centre (% of orbit radius) errors of the written poses against the truth."""
+    posed = {Path(f.file_path).stem: f.c2w for f in read_transforms(scan).frames}
+    names = sorted(posed)
+    if align:
+        s, r, t = umeyama(np.array([posed[n][:3, 3] for n in names]), np.array([truth[n][:3, 3] for n in names]))
+    else:
+        s, r, t = 1.0, np.eye(3), np.zeros(3)
+    rot = [rotation_angle_deg(r @ posed[n][:3, :3], truth[n][:3, :3]) for n in names]
+    ctr = [100 * np.linalg.norm(s * r @ posed[n][:3, 3] + t - truth[n][:3, 3]) / radius for n in names]
+    return {"rotation_median_deg": round(float(np.median(rot)), 4), "rotation_max_deg": round(float(max(rot)), 4),
+            "centre_median_pct": round(float(np.median(ctr)), 4), "centre_max_pct": round(float(max(ctr)), 4)}
+
+
+def posing_rows(work: Path, rig: RigGeometry, view_counts: list[int], sfm_counts: list[int],
+                sfm_max_runtime_s: float) -> tuple[list[dict], dict]:
+    elevations = default_elevations(6)
+    started = time.perf_counter()
+    full = make_scan(work / "full", rig, elevations)
+    made = time.perf_counter() - started
+    started = time.perf_counter()
+    developed = develop_scan(full)
+    develop_s = time.perf_counter() - started
+    cameras = json.loads((full.sim_truth_dir / "cameras.json").read_text())["frames"]
+    truth = {Path(c["file"]).stem: np.array(c["camera_to_world"]) for c in cameras}
+    radius = rig.orbit_radius_m
+    rows = []
+    for count in view_counts:
+        views = view_subset(count)
+        for method in ("rig", "sfm"):
+            if method == "sfm" and count not in sfm_counts:
+                continue
+            scan = subset_scan(full, work / f"{method}_{count}", views)
+            model = RigModel.nominal(rig, sorted({elevations[e] for e, _ in views})) if method == "rig" else None
+            settings = PoseSettings(sfm=SfmSettings(num_threads=THREADS, max_runtime_s=sfm_max_runtime_s))
+            started = time.perf_counter()
+            report = pose_scan(scan, settings, model)
+            seconds = time.perf_counter() - started
+            row = {"views": count, "method": method, "seconds": round(seconds, 1),
+                   "registered": len(report.registered), "points": report.points, "init_cloud": report.init_cloud,
+                   "reprojection_error_px": round(report.reprojection_error_px, 3),
+                   **pose_errors(scan, truth, radius, align=method == "sfm")}
+            if method == "rig":
+                check = report.cross_check  # its centre error is a fraction of the model's horizontal radius
+                to_pct = 100 * model.orbit_radius() / radius
+                row["cross_check"] = {"registered": check.get("registered"),
+                                      "rotation_median_deg": round(check.get("rotation_median_deg", np.nan), 4),
+                                      "centre_median_pct": round(to_pct * check.get("centre_median_fraction",
+                                                                                    np.nan), 4),
+                                      "drift_flagged_elevations": check.get("drifted_elevations", [])}
+            rows.append(row)
+            print(f"  posed {count} views by {method}: {seconds:.1f} s", flush=True)
+    scan_info = {"stone": "procedural speckled, seed 11, 9 cm", "size": [rig.width, rig.height],
+                 "elevations_deg": list(elevations), "azimuths": AZIMUTHS, "orbit_radius_m": round(radius, 4),
+                 "render_and_encode_s": round(made, 1), "develop_and_mask_s": round(develop_s, 1),
+                 "develop_and_mask_s_per_image": round(develop_s / len(developed.frames), 3)}
+    return rows, scan_info
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="480x360", help="simulated camera size for the posing scan")
+    parser.add_argument("--views", default="40,120,240", help=f"any of {sorted(SUBSETS)}")
+    parser.add_argument("--sfm-views", default="40,120,240", help="view counts also posed by pure SfM")
+    parser.add_argument("--sfm-max-runtime", type=float, default=180.0, help="COLMAP mapping bound per run (s)")
+    parser.add_argument("--develop-sizes", default="640x480,2000x1500,4000x3000")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "process.json")
+    args = parser.parse_args()
+    width, height = (int(v) for v in args.size.split("x"))
+    sizes = [tuple(int(v) for v in s.split("x")) for s in args.develop_sizes.split(",")]
+    console = Console(width=140)
+    started, load_before = time.perf_counter(), os.getloadavg()
+    with tempfile.TemporaryDirectory(prefix="bench-process-") as tmp:
+        work = Path(tmp)
+        develop = develop_rows(work, sizes, args.repeats)
+        table = Table(title="develop: ours (linear AHD + matrix) vs rawpy default postprocess(), same files")
+        for column in ("source", "MP", "ours s", "ours s/MP", "rawpy s", "rawpy s/MP", "ours/rawpy"):
+            table.add_column(column, overflow="fold")
+        for r in develop:
+            table.add_row(r["source"], f"{r['megapixels']:.2f}", f"{r['ours_s']:.3f}", f"{r['ours_s_per_mp']:.3f}",
+                          f"{r['rawpy_default_s']:.3f}", f"{r['rawpy_default_s_per_mp']:.3f}",
+                          f"{r['ours_over_rawpy']:.2f}")
+        console.print(table)
+        masks = mask_rows([(640, 480), (1280, 960), (2560, 1920)], args.repeats)
+        console.print("masks (speckled stone, graph cut): " + ", ".join(
+            f"{r['width']}x{r['height']} {r['seconds']:.2f} s" for r in masks))
+        rig = RigGeometry().scaled(width, height)
+        posing, scan_info = posing_rows(work, rig, [int(v) for v in args.views.split(",")],
+                                        [int(v) for v in args.sfm_views.split(",")], args.sfm_max_runtime)
+    table = Table(title=f"posing a simulated speckled stone at {width}x{height} against sim truth")
+    for column in ("views", "method", "s", "registered", "points", "rot med/max deg", "centre med/max %",
+                   "cross-check rot/centre"):
+        table.add_column(column, overflow="fold")
+    for r in posing:
+        check = r.get("cross_check")
+        table.add_row(str(r["views"]), r["method"], f"{r['seconds']:.1f}", str(r["registered"]), str(r["points"]),
+                      f"{r['rotation_median_deg']:.3f} / {r['rotation_max_deg']:.3f}",
+                      f"{r['centre_median_pct']:.3f} / {r['centre_max_pct']:.3f}",
+                      "-" if check is None else f"{check['registered']} reg, {check['rotation_median_deg']:.3f} deg, "
+                                                f"{check['centre_median_pct']:.3f} %")
+    console.print(table)
+    result = {
+        "benchmark": "process",
+        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+                    "cpus": os.cpu_count(), "python": sys.version.split()[0],
+                    "load_average_before": load_before, "load_average_after": os.getloadavg(),
+                    "note": "shared machine: other jobs ran alongside, so absolute times are inflated"},
+        "threads": {"colmap": THREADS, "libraw": 1},
+        "versions": {"rawpy": rawpy.__version__, "libraw": ".".join(map(str, rawpy.libraw_version)),
+                     "pycolmap": __import__("pycolmap").__version__, "opencv": cv2.__version__},
+        "develop": {"repeats": args.repeats, "peer": "rawpy.RawPy.postprocess() with default arguments "
+                    "(AHD, 8-bit sRGB, gamma, auto-bright, daylight WB), file open included on both sides",
+                    "rows": develop},
+        "masks": {"repeats": args.repeats, "rows": masks},
+        "posing": {"scan": scan_info, "subsets": {str(k): {"rings": list(v[0]), "azimuths_per_ring": v[1]}
+                                                  for k, v in SUBSETS.items()},
+                   "resolution_note": "480x360 by default (640x480 did not fit in ~15 min on this machine); "
+                                      "fewer SIFT features there than at 640x480",
+                   "sfm_max_runtime_s": args.sfm_max_runtime, "rows": posing,
+                   "note": "frames are rendered at the planned poses, so sim truth equals the nominal rig and "
+                           "the rig path's own pose error is zero by construction; its cross-check (free mapping "
+                           "pulled to the rig, aligned) is the SfM figure on that path"},
+        "total_s": round(time.perf_counter() - started, 1),
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    console.print(f"wrote {args.out} in {result['total_s']:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,93 @@
+"""The runner in-process: budgets, operator cancel, and the guards that keep one scan from stalling the night.
+
+Each test queues a copy of one tiny simulated scan and runs the real runner with the local
+executor; what each test checks happens early, so only the cancel test reaches training.
+"""
+
+from __future__ import annotations
+
+import shutil
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from batch_support import shoot
+from station.batch.executors import LocalExecutor
+from station.batch.runner import DEFAULT_BUDGETS, BatchSettings, StageBudget, run_batch
+from station.batch.stages import STAGES, scan_stage_key
+from station.batch.store import JobStore, StoreConfig
+from station.ngs.presets import make_config, safer_preset
+from station.scanfolder import ScanFolder
+
+FAST_STORE = StoreConfig(lease_seconds=2, max_attempts=3, backoff_seconds=0)
+SETTINGS = BatchSettings(preset="tiny", poll_seconds=0.1)
+
+
+@pytest.fixture(scope="module")
+def shot(tmp_path_factory) -> Path:
+    return shoot(tmp_path_factory.mktemp("shot") / "stone", "6")
+
+
+@pytest.fixture
+def queued(shot, tmp_path) -> tuple[JobStore, Path]:
+    scan = Path(shutil.copytree(shot, tmp_path / "stone"))
+    store = JobStore(tmp_path / "queue.sqlite", FAST_STORE)
+    store.add(scan)
+    return store, scan
+
+
+def test_a_stage_over_its_time_budget_is_killed_and_the_scan_parked(queued):
+    store, scan = queued
+    budgets = {**DEFAULT_BUDGETS, "process": StageBudget(seconds=0.5, free_mb=0)}
+    run_batch(store, replace(SETTINGS, budgets=budgets), LocalExecutor())
+    job = store.get(scan)
+    assert (job.state, job.stage, job.reason) == ("parked", "process", "process: process ran over its time budget of 0.5 s")
+    assert not ScanFolder(scan).is_done("process")
+
+
+def test_a_scan_without_a_finished_capture_is_parked_untouched(queued):
+    store, scan = queued
+    ScanFolder(scan).clear_done("capture")
+    run_batch(store, SETTINGS, LocalExecutor())
+    job = store.get(scan)
+    assert job.state == "parked" and "no finished capture" in job.reason and "station scan" in job.reason
+    assert store.stage_events(job.id) == []
+
+
+def test_a_stage_the_runner_keeps_dying_in_is_parked_instead_of_looping_all_night(queued):
+    store, scan = queued
+    job = store.get(scan)
+    key = scan_stage_key(ScanFolder(scan), STAGES[0], {}, {})
+    for _ in range(SETTINGS.max_lost_starts):  # as a runner killed each time inside `process` leaves the log
+        store.log_stage(job.id, "process", key, "started")
+    run_batch(store, SETTINGS, LocalExecutor())
+    parked = store.get(scan)
+    assert parked.state == "parked" and parked.reason.startswith("process: started 10 times without an outcome")
+
+
+def test_cancelling_a_running_scan_stops_its_stage_at_the_next_heartbeat(queued):
+    store, scan = queued
+    runner = threading.Thread(target=run_batch, args=(store, SETTINGS, LocalExecutor()))
+    runner.start()
+    deadline = time.monotonic() + 60
+    while store.get(scan).stage != "train" and time.monotonic() < deadline:
+        time.sleep(0.05)
+    store.cancel(scan)
+    runner.join(30)
+    assert not runner.is_alive()
+    job = store.get(scan)
+    assert job.state == "cancelled"
+    log = [(e["stage"], e["event"]) for e in store.stage_events(job.id)]
+    assert log == [("process", "started"), ("process", "finished"), ("train", "started"), ("train", "abandoned")]
+    assert not ScanFolder(scan).is_done("train")
+
+
+def test_the_safer_preset_halves_step_sizes_gaussian_budget_and_resolution():
+    base, safe = make_config("ngs", "fast"), make_config("ngs", safer_preset("fast"))
+    assert safer_preset("fast") == "fast-safe" and safer_preset("fast-safe") == "fast-safe"
+    assert (safe.lr_means, safe.lr_opacities) == (base.lr_means / 2, base.lr_opacities / 2)
+    assert (safe.densify.max_gaussians, safe.downscale) == (base.densify.max_gaussians // 2, base.downscale * 2)
+    assert (safe.steps, safe.ngs) == (base.steps, base.ngs)
