@@ -3,10 +3,11 @@
 Each method trains on the same processed scan with the same preset (all three share every step
 count and learning rate; only the losses and the infill differ), then is scored with the NGS run's
 infill, as the paper does, so SOS compares like with like. `--ablations` adds the paper's
-ablations of NGS (no erosion, no pruning, no L_f, no LR reset, no colour reset). Held-out PSNR is
+ablations of NGS (no erosion, no pruning, no L_f, no LR reset, no colour reset) and ours (L_f on the
+rendered alpha after the freeze, as the reference does, instead of the surface's own). Held-out PSNR is
 sampled during training, so the JSON also holds speed against error for every run.
 
-    python bench/ngs.py [--scan SCAN] [--stone LOOK:SEED] [--size 320x240] [--preset fast] [--ablations]
+    python bench/ngs.py [--scan SCAN] [--stone LOOK:SEED] [--size 256x192] [--preset fast] [--ablations]
 
 Without --scan a 6x40 simulated scan is shot and processed first (a few minutes).
 """
@@ -48,6 +49,7 @@ def ablations(cfg: TrainConfig) -> dict[str, TrainConfig]:
         "ngs: no L_f": replace(cfg, loss=replace(cfg.loss, fg_weight=0.0)),
         "ngs: no LR reset": replace(cfg, ngs=replace(ngs, lr_reset=False)),
         "ngs: no colour reset": replace(cfg, ngs=replace(ngs, recolour=False)),
+        "ngs: L_f on the rendered alpha (reference)": replace(cfg, ngs=replace(ngs, fg_on_surface=False)),
     }
 
 
@@ -87,7 +89,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scan", type=Path, help="a processed scan folder (default: shoot and process one)")
     parser.add_argument("--stone", default=None, help="simulated stone: seed, look:seed or a mesh path")
-    parser.add_argument("--size", default="320x240")
+    parser.add_argument("--size", default="256x192")
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--ablations", action="store_true")
     parser.add_argument("--out", type=Path, default=RESULTS)

@@ -47,6 +47,13 @@ def test_transparent_model_fails_on_sos_and_volume_with_advice():
     assert "70.0% smaller" in reasons["volume_consistency"]
 
 
+def test_an_infill_a_margin_below_the_surface_is_consistent_but_one_poking_out_is_not():
+    below = evaluate_gate(good_metrics() | {"mesh_volume_m3": 1.5e-4, "infill_volume_m3": 1.17e-4})
+    assert below.passed
+    reasons = failed(evaluate_gate(good_metrics() | {"mesh_volume_m3": 1.5e-4, "infill_volume_m3": 1.65e-4}))
+    assert set(reasons) == {"volume_consistency"} and "10.0% larger" in reasons["volume_consistency"]
+
+
 def test_broken_mesh_fails_the_mesh_check_with_its_problems():
     box = trimesh.creation.box()
     box.update_faces([True] * (len(box.faces) - 1) + [False])

@@ -1,5 +1,5 @@
-"""The watertight mesh: TSDF fusion of ray-cast depth plus an eroded-interior occupancy, tested
-against the true mesh (volume error, Chamfer-L1 with point-to-mesh distances, F-score)."""
+"""The watertight mesh: the splat's opacity level set, or TSDF fusion of depth, plus an eroded-interior
+occupancy, tested against the true mesh (volume error, Chamfer-L1 with point-to-mesh distances, F-score)."""
 
 from __future__ import annotations
 
@@ -17,12 +17,14 @@ from station.export.mesh import (
     VoxelGrid,
     build_watertight_mesh,
     check_mesh,
+    opacity_mesh,
     render_depth_maps,
     resample_to_grid,
     tsdf_fuse,
     vertex_colors_from_splats,
     write_mesh_files,
 )
+from station.export.opacity_field import LOWPASS_VOXELS
 from station.export.splat_model import SplatModel, matrix_to_quat
 from station.rig_geometry import look_at_c2w
 
@@ -128,17 +130,18 @@ def test_real_stone_meets_volume_and_chamfer_targets(path: Path):
     assert errors.chamfer_fraction_of_diagonal <= 0.005, errors
 
 
-def surface_splat(mesh: trimesh.Trimesh, n: int) -> SplatModel:
-    """Opaque flat discs tangent to the surface: a stand-in for a trained NGS surface splat."""
+def surface_splat(mesh: trimesh.Trimesh, n: int, flatness: float = 0.1, width: float = 0.5) -> SplatModel:
+    """Opaque flat discs tangent to the surface (`flatness`: thickness over width; `width`: disc sigma over
+    the sample spacing), a stand-in for a trained NGS surface splat."""
     points, face = trimesh.sample.sample_surface_even(mesh, n, seed=0)
     quats = []
     for normal in mesh.face_normals[face]:
         x = np.cross(normal, [0.3, 0.5, 0.8])
         x /= np.linalg.norm(x)
         quats.append(matrix_to_quat(np.stack([x, np.cross(normal, x), normal], 1)))
-    sigma = 0.5 * np.sqrt(mesh.area / len(points))
+    sigma = width * np.sqrt(mesh.area / len(points))
     return SplatModel(
-        points, np.log(np.tile([sigma, sigma, 0.1 * sigma], (len(points), 1))), np.array(quats),
+        points, np.log(np.tile([sigma, sigma, flatness * sigma], (len(points), 1))), np.array(quats),
         np.full(len(points), 5.0), np.zeros((len(points), 3)), np.zeros((len(points), 0, 3)),
     )
 
@@ -157,6 +160,50 @@ def test_rendered_splat_depth_fuses_to_the_stone():
     # the camera by about a disc's size) and this crude disc splat is not trained.
     assert abs(errors.volume_rel_error) <= 0.03, errors
     assert errors.chamfer_fraction_of_diagonal <= 0.01, errors
+
+
+def gaussians(means, scales, quats, opacity: float) -> SplatModel:
+    n = len(means)
+    return SplatModel(np.asarray(means), np.log(np.asarray(scales)), np.asarray(quats),
+                      np.full(n, np.log(opacity / (1 - opacity))), np.zeros((n, 3)), np.zeros((n, 0, 3)))
+
+
+def test_one_gaussian_meshes_to_the_ellipsoid_where_its_opacity_is_one_half():
+    scales = np.array([0.02, 0.012, 0.007])
+    model = gaussians([[0.01, -0.02, 0.05]], [scales], [matrix_to_quat(look_at_c2w(np.ones(3), np.zeros(3))[:3, :3])],
+                      0.99)
+    grid = VoxelGrid.around(np.array([-0.06, -0.08, 0.0]), np.array([0.08, 0.04, 0.1]), 0.001)
+    mesh = opacity_mesh(model, np.zeros(grid.shape, np.float32), grid)
+    widened = np.sqrt(scales**2 + (LOWPASS_VOXELS * grid.voxel_size) ** 2)  # the grid's low-pass
+    semi_axes = widened * np.sqrt(2 * np.log(2 * 0.99))  # 0.99 exp(-r^2/2) = 1/2
+    assert check_mesh(mesh).ok
+    assert mesh.volume == pytest.approx(4 / 3 * np.pi * np.prod(semi_axes), rel=0.02)
+    assert mesh.centroid == pytest.approx([0.01, -0.02, 0.05], abs=grid.voxel_size / 4)
+
+
+def test_a_dome_of_gaussians_on_the_plate_is_meshed_solid_without_an_infill():
+    """The hollow under a dome is closed by the plate, as the unseen bottom of a stone is: it is inside,
+    so the mesh is the half ball, not a skin."""
+    n, radius = 4000, 0.03
+    i = np.arange(n) + 0.5
+    phi, theta = np.arccos(1 - 2 * i / n), np.pi * (1 + 5**0.5) * i
+    points = radius * np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
+    points = points[points[:, 2] >= 0]
+    spacing = radius * np.sqrt(4 * np.pi / n)
+    model = gaussians(points, np.full((len(points), 3), 0.6 * spacing), np.tile([1.0, 0, 0, 0], (len(points), 1)), 0.9)
+    grid = VoxelGrid.around(np.array([-0.04, -0.04, 0.0]), np.array([0.04, 0.04, 0.04]), 0.001)
+    mesh = opacity_mesh(model, np.zeros(grid.shape, np.float32), grid)
+    assert check_mesh(mesh).ok and mesh.body_count == 1
+    assert mesh.volume > 0.95 * 2 / 3 * np.pi * radius**3
+
+
+def test_a_see_through_splat_has_no_surface_to_mesh_even_with_an_infill():
+    truth = stone_on_plate(bumpy_stone())
+    grid = VoxelGrid.around(truth.bounds[0], truth.bounds[1], float(truth.extents.max()) / 32)
+    faint = surface_splat(truth, 2000)
+    faint.opacity_logit[:] = -5.0  # opacity 0.007
+    with pytest.raises(BadInputError, match="nowhere opaque"):
+        opacity_mesh(faint, eroded_occupancy(truth, grid), grid)
 
 
 def test_written_files_reload_watertight_in_their_own_frames(tmp_path: Path):

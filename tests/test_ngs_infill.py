@@ -74,6 +74,14 @@ def test_infill_of_a_sphere_lies_strictly_inside_it():
     assert float(radii.max()) < RADIUS
 
 
+def test_a_far_floater_does_not_stretch_the_hull_and_empty_the_infill():
+    alone = build_infill(sphere_surface(), ring_cameras(), TINY)
+    floater = noise_at([[0.0, -10.0, 4.0]], scale=0.05, opacity=0.5)
+    with_floater = build_infill(join(sphere_surface(), floater), ring_cameras(), TINY)
+    assert len(with_floater) == len(alone) > 20
+    assert torch.equal(with_floater.means, alone.means)
+
+
 def test_depth_pruning_removes_hull_noise_between_two_spheres():
     surface = join(sphere_surface((-1.5, 0, 0)), sphere_surface((1.5, 0, 0)))
     def inside_a_sphere(means: torch.Tensor) -> torch.Tensor:

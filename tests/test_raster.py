@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from station.errors import BadInputError
-from station.ngs.raster import pixel_contributors, rasterization, set_num_threads
+from station.ngs.raster import median_depth, pixel_contributors, rasterization, set_num_threads
 from station.ngs.raster_reference import project
 
 
@@ -176,6 +176,34 @@ def test_pixel_contributors_recomposite_to_the_rendered_alpha(backend):
     depths = meta["depths"][0][ids]
     same_pixel = pix[1:] == pix[:-1]
     assert (depths[1:][same_pixel] >= depths[:-1][same_pixel]).all()
+
+
+def test_median_depth_agrees_with_the_reference_and_is_infinite_where_alpha_stays_below_half():
+    scene = random_scene(200, 48, 40, sh_degree=None, seed=5, dtype=torch.float64)
+    args = [scene[k] for k in ("means", "quats", "scales", "opacities")] + [scene["viewmats"][0], scene["Ks"][0], 48, 40]
+    cpu, reference = median_depth(*args, backend="cpu"), median_depth(*args, backend="torch")
+    _, alpha, _ = rasterization(*(scene[k] for k in ("means", "quats", "scales", "opacities", "colors",
+                                                     "viewmats", "Ks")), 48, 40, backend="cpu")
+    assert torch.equal(torch.isinf(cpu), torch.isinf(reference))
+    torch.testing.assert_close(cpu[torch.isfinite(cpu)], reference[torch.isfinite(reference)], atol=1e-9, rtol=0)
+    assert torch.equal(torch.isfinite(cpu), alpha[0, ..., 0] >= 0.5)
+
+
+def test_median_depth_sits_on_the_first_opaque_layer_where_expected_depth_does_not():
+    """Two stacked layers of flat Gaussians at z = 4 and z = 4.05: the median is on the front one."""
+    xs, ys = torch.meshgrid(torch.linspace(-0.6, 0.6, 13), torch.linspace(-0.6, 0.6, 13), indexing="xy")
+    layer = torch.stack([xs.reshape(-1), ys.reshape(-1), torch.zeros(169)], -1)
+    means = torch.cat([layer + torch.tensor([0, 0, 4.0]), layer + torch.tensor([0, 0, 4.05])])
+    n = len(means)
+    quats, scales = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.tensor([[0.08, 0.08, 0.005]]).repeat(n, 1)
+    opacities, viewmat = torch.full((n,), 0.2), torch.eye(4)  # the front layer alone reaches alpha 0.71
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    median = median_depth(means, quats, scales, opacities, viewmat, K, 32, 32)
+    colors, _, _ = rasterization(means, quats, scales, opacities, torch.rand(n, 3), viewmat[None], K[None], 32, 32,
+                                 render_mode="RGB+ED")
+    centre = (slice(12, 20), slice(12, 20))
+    assert torch.allclose(median[centre], torch.tensor(4.0), atol=1e-6)
+    assert (colors[0, ..., 3][centre] > 4.01).all()  # a fifth of the way to the back layer
 
 
 def test_cpu_and_reference_listings_are_identical():

@@ -15,7 +15,8 @@ from station.ngs.gaussians import Gaussians, rgb_to_sh
 from station.ngs.infill import Infill, InfillConfig, build_infill
 from station.ngs.inria_ply import read_inria_ply
 from station.ngs.raster import rasterization
-from station.ngs.sos import evaluate, sos_of_transmittance
+from station.ngs.sos import evaluate, scan_infill, sos_of_transmittance
+from station.scanfolder import ScanFolder
 from test_ngs_infill import ring_cameras, sphere_surface
 
 TINY = InfillConfig(levels=(8, 16), erosion_iters=(2, 2), prune_downscale=1)
@@ -83,6 +84,20 @@ def test_views_without_masks_fall_back_to_the_rendered_alpha(scene):
     result = evaluate(sphere_model(0.99), infill, unmasked)
     assert result["sos"] > 0.99
     assert {row["mask_source"] for row in result["views"]} == {"rendered alpha"}
+
+
+def test_an_empty_infill_cannot_be_scored_instead_of_scoring_a_perfect_one(scene):
+    views, infill = scene
+    with pytest.raises(BadInputError, match="infill .* empty"):
+        evaluate(sphere_model(0.2), infill.select(torch.zeros(len(infill), dtype=torch.bool)), views)
+
+
+def test_a_scan_whose_trained_infill_is_empty_is_scored_with_one_built_from_its_surface(scene, tmp_path):
+    views, infill = scene
+    (tmp_path / "model").mkdir()
+    torch.save(infill.select(torch.zeros(len(infill), dtype=torch.bool)).state_dict(), tmp_path / "model" / "infill.pt")
+    built, source = scan_infill(ScanFolder(tmp_path), sphere_model(0.99), ring_cameras())
+    assert len(built) > 0 and source == "built from the scored splat (the trained infill is empty)"
 
 
 def write_inria_ply(path, model: Gaussians) -> None:

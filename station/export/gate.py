@@ -20,7 +20,12 @@ class GateConfig:
     min_sos: float = 0.9  # Surface Opacity Score: how opaque the surface is seen from every view
     min_psnr: float = 28.0  # dB on held-out views
     min_ssim: float = 0.9  # skimage SSIM, Gaussian window sigma 1.5, on held-out views
-    max_volume_mismatch: float = 0.1  # |mesh volume - infill volume| / mesh volume
+    # (mesh volume - infill volume) / mesh volume. The infill sits a margin below the surface: after its
+    # erosion is grown back it still misses the surface layer and what depth pruning removed (22 % of the
+    # demo stone's accurate mesh). More than this and the mesh holds far more than its inside, below zero
+    # and the inside pokes out through the surface.
+    max_volume_mismatch: float = 0.35
+    max_infill_excess: float = 0.05
     max_outside_hull_fraction: float = 0.01  # Gaussians outside the masks' visual hull
     require_mesh: bool = True  # watertight + manifold mesh
 
@@ -92,22 +97,22 @@ def _mesh_check(metrics: dict) -> GateCheck:
     )
 
 
-def _volume_check(limit: float) -> Callable[[dict], GateCheck]:
+def _volume_check(limit: float, excess: float) -> Callable[[dict], GateCheck]:
     def check(metrics: dict) -> GateCheck:
         mesh_v, infill_v = _number(metrics, "mesh_volume_m3"), _number(metrics, "infill_volume_m3")
         if mesh_v is None or infill_v is None or mesh_v <= 0:
             return GateCheck("volume_consistency", None, limit, False, "volume consistency: mesh or infill volume missing; re-run export")
-        mismatch = abs(mesh_v - infill_v) / mesh_v
-        ok = mismatch <= limit
+        mismatch = (mesh_v - infill_v) / mesh_v
+        ok = -excess <= mismatch <= limit
         if ok:
-            reason = f"mesh and infill volumes agree within {mismatch:.1%}"
+            reason = f"the infill fills {1 - mismatch:.1%} of the mesh's volume"
         else:
-            direction = "larger" if infill_v > mesh_v else "smaller"
+            direction, bound = ("smaller", limit) if mismatch > 0 else ("larger", excess)
             reason = (
-                f"infill volume is {mismatch:.1%} {direction} than the mesh's (limit {limit:.0%}): the surface "
+                f"infill volume is {abs(mismatch):.1%} {direction} than the mesh's (limit {bound:.0%}): the surface "
                 "and the inside disagree; look for a hole or a leak in the report's transmittance maps and retrain"
             )
-        return GateCheck("volume_consistency", mismatch, limit, ok, reason)
+        return GateCheck("volume_consistency", mismatch, [-excess, limit], ok, reason)
 
     return check
 
@@ -146,7 +151,7 @@ def evaluate_gate(metrics: dict, config: GateConfig | None = None) -> GateResult
             "SSIM", "ssim", config.min_ssim,
             "held-out views lose structure; check for blur or motion in the photos, then retrain longer",
         ),
-        _volume_check(config.max_volume_mismatch),
+        _volume_check(config.max_volume_mismatch, config.max_infill_excess),
         _hull_check(config.max_outside_hull_fraction),
     ]
     if config.require_mesh:

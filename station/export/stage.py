@@ -24,6 +24,7 @@ from station.export.mesh import (
     MeshConfig,
     VoxelGrid,
     build_watertight_mesh,
+    opacity_mesh,
     render_depth_maps,
     resample_to_grid,
     vertex_colors_from_splats,
@@ -48,7 +49,7 @@ class ExportConfig:
     gate: GateConfig = field(default_factory=GateConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
     mesh_resolution: int = 112  # voxels along the stone's longest side
-    depth_views: int = 24  # training views rendered to depth for the TSDF
+    depth_views: int = 24  # training views rendered to depth for the TSDF (mesh.surface == "tsdf")
     depth_max_width: int = 200  # depth maps are rendered at most this wide: CPU rendering is the cost
     stl: bool = False  # also write asset/mesh.stl for printing
     reference_mesh: Path | None = None  # a known-true mesh (laser scan, simulator truth) to score the mesh against
@@ -93,12 +94,13 @@ def infill_splat(infill: Infill) -> SplatModel:
     )
 
 
-def _train_metrics(scan: ScanFolder) -> dict:
+def train_metrics(scan: ScanFolder) -> dict:
+    """model/train_metrics.json, or {} for a model trained elsewhere."""
     path = scan.model_dir / "train_metrics.json"
     return scan.read_json(path) if path.is_file() else {}
 
 
-def _infill_erosion(train: dict, infill_source: str) -> int:
+def infill_erosion(train: dict, infill_source: str) -> int:
     """Fine cells the infill was eroded away from the surface: what its body must grow back."""
     if infill_source != "ngs":
         return int(EVAL_INFILL.erosion_iters[-1])
@@ -117,15 +119,9 @@ def _spread(count: int, wanted: int) -> list[int]:
     return sorted({int(i) for i in np.linspace(0, count - 1, min(wanted, count))}) if count else []
 
 
-def _mesh(model: SplatModel, scene: SceneData, body: np.ndarray, body_grid: VoxelGrid, config: ExportConfig) -> tuple[trimesh.Trimesh, VoxelGrid]:
-    """TSDF of rendered depth where seen, the infill body where not; see station.export.mesh."""
-    views = [scene.train[i] for i in _spread(len(scene.train), config.depth_views)]
-    factor = max(1, int(np.ceil(views[0].width / config.depth_max_width)))
-    width, height = views[0].width // factor, views[0].height // factor
-    Ks = np.stack([v.K.double().numpy() for v in views])  # [V, 3, 3]
-    Ks[:, :2] /= factor
-    c2ws = _c2ws(views)
-    depths = render_depth_maps(model, c2ws, Ks, width, height, config.mesh)  # [V, H, W]
+def mesh_splat(model: SplatModel, scene: SceneData, body: np.ndarray, body_grid: VoxelGrid, config: ExportConfig) -> tuple[trimesh.Trimesh, VoxelGrid]:
+    """The splat's opacity level set (or the TSDF of its rendered depth) with the infill body inside;
+    see station.export.mesh."""
     opaque = model.opacity() > 0.5
     means = model.means[opaque] if opaque.sum() >= 4 else model.means
     lo, hi = means.min(axis=0), means.max(axis=0)
@@ -134,6 +130,15 @@ def _mesh(model: SplatModel, scene: SceneData, body: np.ndarray, body_grid: Voxe
     # Marching cubes can leave zero-volume sliver bodies; trimesh divides 0/0 for their centre of
     # mass while extract_mesh ranks bodies by volume. The slivers are dropped, so the NaN is harmless.
     with np.errstate(invalid="ignore", divide="ignore"):
+        if config.mesh.surface == "opacity":
+            return opacity_mesh(model, occupancy, grid, config.mesh), grid
+        views = [scene.train[i] for i in _spread(len(scene.train), config.depth_views)]
+        factor = max(1, int(np.ceil(views[0].width / config.depth_max_width)))
+        width, height = views[0].width // factor, views[0].height // factor
+        Ks = np.stack([v.K.double().numpy() for v in views])  # [V, 3, 3]
+        Ks[:, :2] /= factor
+        c2ws = _c2ws(views)
+        depths = render_depth_maps(model, c2ws, Ks, width, height, config.mesh)  # [V, H, W]
         return build_watertight_mesh(depths, Ks, c2ws, occupancy, grid, config.mesh), grid
 
 
@@ -145,7 +150,7 @@ def _write_mesh(model: SplatModel, scene: SceneData, body: np.ndarray, body_grid
     failed mesh check for the gate, and stale mesh files of an earlier run are removed."""
     mesh_files = [files[name] for name in ("mesh.ply", "mesh.glb", "mesh.stl") if name in files]
     try:
-        mesh, grid = _mesh(model, scene, body, body_grid, config)
+        mesh, grid = mesh_splat(model, scene, body, body_grid, config)
     except BadInputError as exc:
         for path in mesh_files:
             path.unlink(missing_ok=True)
@@ -195,7 +200,7 @@ def export_scan(scan_root: Path, config: ExportConfig | None = None) -> ExportRe
     if len(infill) == 0:
         raise BadInputError(f"{scan.model_dir}: the infill is empty; the model has no inside to mesh or score")
     model = splat_model_of(surface)
-    train = _train_metrics(scan)
+    train = train_metrics(scan)
     asset = scan.asset_dir
     files = {name: asset / name for name in ("splat.ply", "infill.ply", "splat.splat", "splat.spz", "splat.glb",
                                                "mesh.ply", "mesh.glb", "metrics.json", "gate.json", "report.html")}
@@ -208,7 +213,7 @@ def export_scan(scan_root: Path, config: ExportConfig | None = None) -> ExportRe
     metrics = evaluate(surface, infill, scene.test)
     metrics["infill_source"] = infill_source
     metrics["train_seconds"] = train.get("report", {}).get("seconds")
-    body, body_grid = infill_body(infill.means.numpy(), infill.scales.numpy(), _infill_erosion(train, infill_source))
+    body, body_grid = infill_body(infill.means.numpy(), infill.scales.numpy(), infill_erosion(train, infill_source))
     metrics["infill_volume_m3"] = body_volume(body, body_grid)
     if config.stl:
         files["mesh.stl"] = asset / "mesh.stl"

@@ -232,6 +232,50 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, w
 
 
 @njit(parallel=True, fastmath=True, cache=True)
+def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid, width, height, fast):
+    """Per pixel, the depth of the Gaussian whose compositing takes T to 0.5 or below -> [H, W] (+inf where
+    T stays above 0.5). Same skip and stop rules as rasterize_fwd; forward only (meshing, not training)."""
+    dt = means2d.dtype
+    tw = (width + TILE - 1) // TILE
+    ntiles = tile_offsets.shape[0] - 1
+    out = np.full((height, width), np.inf, dt)
+    for t in prange(ntiles):
+        start, end = tile_offsets[t], tile_offsets[t + 1]
+        px, py, inside = _tile_pixels(t, tw, width, height, dt)
+        T = np.ones(TILE_PIX, dt)
+        live = np.empty(TILE_PIX, dt)
+        median = np.full(TILE_PIX, np.inf, dt)
+        alpha = np.empty(TILE_PIX, dt)
+        expo = np.empty(TILE_PIX, dt)
+        ibuf = np.empty(TILE_PIX, np.int32)
+        for p in range(TILE_PIX):
+            live[p] = 1.0 if inside[p] else 0.0
+        for k in range(end - start):
+            g = isect_gid[start + k]
+            _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
+                    px, py, alpha, expo, fast, ibuf)
+            z = depths[g]
+            for p in range(TILE_PIX):
+                a = alpha[p]
+                valid = (a >= ALPHA_MIN) & (live[p] > ZERO)
+                next_t = T[p] * (ONE - a)
+                take = valid & (next_t > T_STOP)
+                median[p] = z if take & (next_t <= HALF) & (T[p] > HALF) else median[p]
+                T[p] = next_t if take else T[p]
+                live[p] = ZERO if (valid and not take) or T[p] <= HALF else live[p]
+            if k % 8 == 7:
+                s = 0.0
+                for p in range(TILE_PIX):
+                    s += live[p]
+                if s == 0.0:
+                    break
+        for p in range(TILE_PIX):
+            if inside[p]:
+                out[int(py[p]), int(px[p])] = median[p]
+    return out
+
+
+@njit(parallel=True, fastmath=True, cache=True)
 def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, isect_gid, width, height,
                   feats, t_final, n_proc, g_feats, g_alpha, fast):
     """Per-intersection gradients in list order -> slots [M, 6 + D]: d means2d (2), d conic (3), d colour (D),

@@ -267,6 +267,55 @@ def _gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height
     return render, alphas, meta
 
 
+def _one_camera(caller: str, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor,
+                K: Tensor, width: int, height: int, backend: Backend) -> str:
+    """Validate a single-camera, colourless query; returns the backend to use."""
+    if not (torch.is_tensor(viewmat) and tuple(viewmat.shape) == (4, 4)):
+        raise BadInputError(f"{caller}: viewmat must be a [4, 4] tensor")
+    if not (torch.is_tensor(K) and tuple(K.shape) == (3, 3)):
+        raise BadInputError(f"{caller}: K must be a [3, 3] tensor")
+    rgb = means.new_zeros(means.shape) if torch.is_tensor(means) and means.dim() == 2 else means
+    _validate(means, quats, scales, opacities, rgb, viewmat[None], K[None], width, height, None, None)
+    return _resolve_backend(backend, means.device)
+
+
+def _cpu_binned(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
+                width: int, height: int, near_plane: float) -> tuple[np.ndarray, ...]:
+    """Project and bin for one camera with the numba kernels -> means2d, conics, depths, opacities, bins."""
+    gauss = [t.contiguous().numpy() for t in (means, quats, scales)]
+    cams = [t[None].contiguous().numpy() for t in (viewmat, K, ref.camera_centres(viewmat[None])[0])]
+    m2, conics, depths, radii, _ = _project_kernels.project_fwd(
+        *gauss, np.zeros((means.shape[0], 1, 3), gauss[0].dtype), -1, *cams, width, height, near_plane, 1e10)
+    opac = opacities.contiguous().numpy()
+    bins = _kernels.bin_gaussians(m2[0], conics[0], opac, radii[0], depths[0], width, height)
+    return m2[0], conics[0], depths[0], opac, bins
+
+
+def median_depth(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor, width: int,
+    height: int, *, near_plane: float = 0.01, backend: Backend = "auto",
+) -> Tensor:
+    """Per pixel, the camera z of the Gaussian at which the rendered alpha reaches 0.5 -> [H, W], +inf where
+    it never does.
+
+    Expected depth blends every Gaussian the ray passes, so on a splat surface several Gaussians deep it
+    lies behind the first opaque layer (about 1.4 mm on our simulated stones); the median sits on it.
+    Meshing uses it; forward only. Same skip and stop rules as `rasterization`.
+    """
+    chosen = _one_camera("median_depth", means, quats, scales, opacities, viewmat, K, width, height, backend)
+    width, height = int(width), int(height)
+    with torch.no_grad():
+        if chosen != "cpu":
+            m2, conics, depths, radii = ref.project(means, quats, scales, viewmat[None], K[None], width, height,
+                                                    near_plane, 1e10)
+            return ref.median_depth(m2[0], conics[0], opacities, depths[0], radii[0], width, height)
+        m2, conics, depths, opac, bins = _cpu_binned(means, quats, scales, opacities, viewmat, K, width, height,
+                                                     near_plane)
+        out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], width, height,
+                                        means.dtype == torch.float32)
+        return torch.from_numpy(out)
+
+
 def pixel_contributors(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor, width: int,
     height: int, *, near_plane: float = 0.01, backend: Backend = "auto",
@@ -276,28 +325,17 @@ def pixel_contributors(
     Honours the same skip (alpha < 1/255) and stop (T <= 1e-4) rules as `rasterization`, so recompositing
     the listed Gaussians reproduces the rendered alpha. Used by NGS depth pruning.
     """
-    if not (torch.is_tensor(viewmat) and tuple(viewmat.shape) == (4, 4)):
-        raise BadInputError("pixel_contributors: viewmat must be a [4, 4] tensor")
-    if not (torch.is_tensor(K) and tuple(K.shape) == (3, 3)):
-        raise BadInputError("pixel_contributors: K must be a [3, 3] tensor")
-    rgb = means.new_zeros(means.shape) if torch.is_tensor(means) and means.dim() == 2 else means
-    _validate(means, quats, scales, opacities, rgb, viewmat[None], K[None], width, height, None, None)
-    chosen = _resolve_backend(backend, means.device)
+    chosen = _one_camera("pixel_contributors", means, quats, scales, opacities, viewmat, K, width, height, backend)
     width, height = int(width), int(height)
     with torch.no_grad():
         if chosen != "cpu":
             m2, conics, depths, radii = ref.project(means, quats, scales, viewmat[None], K[None], width, height,
                                                     near_plane, 1e10)
             return ref.contributors(m2[0], conics[0], opacities, depths[0], radii[0], width, height)
-        gauss = [t.contiguous().numpy() for t in (means, quats, scales)]
-        cams = [t[None].contiguous().numpy() for t in (viewmat, K, ref.camera_centres(viewmat[None])[0])]
-        m2, conics, depths, radii, _ = _project_kernels.project_fwd(
-            *gauss, np.zeros((means.shape[0], 1, 3), gauss[0].dtype), -1, *cams, width, height, near_plane, 1e10)
-        opac = opacities.contiguous().numpy()
+        m2, conics, _, opac, bins = _cpu_binned(means, quats, scales, opacities, viewmat, K, width, height,
+                                                near_plane)
         fast = means.dtype == torch.float32
-        bins = _kernels.bin_gaussians(m2[0], conics[0], opac, radii[0], depths[0], width, height)
         feats = np.zeros((means.shape[0], 1), m2.dtype)
-        _, _, n_proc = _kernels.rasterize_fwd(m2[0], conics[0], feats, opac, bins[0], bins[1], width, height, fast)
-        offsets, ids = _kernels.list_contributors(m2[0], conics[0], opac, bins[0], bins[1], width, height, n_proc,
-                                                  fast)
+        _, _, n_proc = _kernels.rasterize_fwd(m2, conics, feats, opac, bins[0], bins[1], width, height, fast)
+        offsets, ids = _kernels.list_contributors(m2, conics, opac, bins[0], bins[1], width, height, n_proc, fast)
         return torch.from_numpy(offsets), torch.from_numpy(ids)

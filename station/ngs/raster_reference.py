@@ -10,6 +10,8 @@ meant for small scenes.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -150,6 +152,20 @@ def rasterize(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor
     if background is not None:
         img = img + T_final[:, None] * background
     return img.reshape(height, width, -1), (1 - T_final).reshape(height, width, 1)
+
+
+def median_depth(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
+                 width: int, height: int) -> Tensor:
+    """One camera: depth of the Gaussian that takes T to 0.5 or below, per pixel [H, W]; +inf where none does."""
+    with torch.no_grad():
+        order, w, _ = _dense_weights(means2d, conics, opacities, depths, radii, width, height)
+        if w.shape[1] == 0:
+            return torch.full((height, width), math.inf, dtype=means2d.dtype)
+        crossed = torch.cumsum(w, dim=-1) >= 0.5                              # [P, N]: 1 - T_after >= 0.5
+        first = torch.argmax(crossed.to(torch.int8), dim=-1)                   # [P]
+        out = depths[order][first]
+        out = torch.where(crossed.any(dim=-1), out, torch.full_like(out, math.inf))
+    return out.reshape(height, width)
 
 
 def contributors(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,

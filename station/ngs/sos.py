@@ -68,6 +68,9 @@ def evaluate(surface: Gaussians, infill: Infill, views: list[View], out_dir: Pat
     sh_degree = surface.sh_degree
     noise = infill.gaussians(1.0)
     n, m = len(surface), len(infill)
+    if m == 0:  # no green to hide: every view would score a meaningless SOS of 1
+        raise BadInputError("SOS needs an infill to hide, and this one is empty (the surface spans no volume "
+                            "that survives pruning and erosion); retrain, or score with a coarser infill")
     green = torch.tensor([0.0, 1.0, 0.0]).expand(m, 3)
     red = torch.tensor([1.0, 0.0, 0.0]).expand(n, 3)
     noise_sh = torch.zeros(m, g["colors"].shape[1], 3)
@@ -108,12 +111,15 @@ def load_surface(scan: ScanFolder) -> tuple[Gaussians, int]:
 
 
 def scan_infill(scan: ScanFolder, surface: Gaussians, cameras: list[Camera]) -> tuple[Infill, str]:
-    """This scan's NGS infill if it has one, else one built from the scored surface itself."""
+    """This scan's NGS infill if it has a non-empty one, else one built from the scored surface itself."""
     path = scan.model_dir / "infill.pt"
     if path.is_file():
-        return Infill.from_state_dict(torch.load(path, weights_only=True)), "ngs"
+        infill = Infill.from_state_dict(torch.load(path, weights_only=True))
+        if len(infill):
+            return infill, "ngs"
     g = {k: v.detach() for k, v in surface.activated().items()}
-    return build_infill(g, cameras, EVAL_INFILL), "built from the scored splat"
+    why = "built from the scored splat" + (" (the trained infill is empty)" if path.is_file() else "")
+    return build_infill(g, cameras, EVAL_INFILL), why
 
 
 def _score(scan: ScanFolder, surface: Gaussians, downscale: int, out_name: str) -> dict:

@@ -1,0 +1,80 @@
+"""The splat's own opacity as a 3D field, whose 0.5 level set is the mesh's surface.
+
+Each Gaussian's opacity at a point x is min(o exp(-(x-mu)^T Sigma^-1 (x-mu) / 2), 0.99), the value the
+rasteriser composites where its ray passes through x; the field is 1 - prod(1 - alpha_i(x)). Its
+0.5 level set is where the splat turns opaque, as in Gaussian Opacity Fields. Rendered depth,
+expected or median, reports Gaussian centres, and on the demo stone those lie 1.3 mm (one
+Gaussian scale) inside the visible boundary: on that stone the TSDF of median depth reached
+Chamfer-L1 1.15 % of the bounding-box diagonal and volume -14.8 %, the level set 0.31 % and +3.1 %.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from station.export.splat_model import SplatModel
+
+ALPHA_MAX = 0.99
+ALPHA_MIN = 1.0 / 255.0
+LOWPASS_VOXELS = 0.3  # std. dev. added to every Gaussian, in voxels
+
+
+def inverse_covariances(scales: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """[N, 3] linear scales and [N, 4] wxyz quaternions -> [N, 3, 3] inverse covariances R S^-2 R^T."""
+    q = quats / np.linalg.norm(quats, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    rot = np.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], axis=1).reshape(-1, 3, 3)
+    return np.einsum("nij,nj,nkj->nik", rot, 1.0 / scales**2, rot)
+
+
+@njit(parallel=True, cache=True)
+def _log_transmittance(means, inv_cov, opacity, reach, origin, voxel, nx, ny, nz):
+    """sum_i log(1 - alpha_i) at every voxel centre; one x-slab per thread, Gaussians in a fixed order."""
+    out = np.zeros((nx, ny, nz))
+    for ix in prange(nx):
+        px = origin[0] + ix * voxel
+        for i in range(means.shape[0]):
+            dx = px - means[i, 0]
+            r = reach[i]
+            if abs(dx) > r:
+                continue
+            j0 = max(0, int(math.ceil((means[i, 1] - r - origin[1]) / voxel)))
+            j1 = min(ny - 1, int(math.floor((means[i, 1] + r - origin[1]) / voxel)))
+            k0 = max(0, int(math.ceil((means[i, 2] - r - origin[2]) / voxel)))
+            k1 = min(nz - 1, int(math.floor((means[i, 2] + r - origin[2]) / voxel)))
+            a, b, c = inv_cov[i, 0, 0], inv_cov[i, 0, 1], inv_cov[i, 0, 2]
+            d, e, f = inv_cov[i, 1, 1], inv_cov[i, 1, 2], inv_cov[i, 2, 2]
+            for j in range(j0, j1 + 1):
+                dy = origin[1] + j * voxel - means[i, 1]
+                for k in range(k0, k1 + 1):
+                    dz = origin[2] + k * voxel - means[i, 2]
+                    m = a * dx * dx + d * dy * dy + f * dz * dz + 2.0 * (b * dx * dy + c * dx * dz + e * dy * dz)
+                    alpha = min(opacity[i] * math.exp(-0.5 * m), ALPHA_MAX)
+                    if alpha >= ALPHA_MIN:
+                        out[ix, j, k] += math.log1p(-alpha)
+    return out
+
+
+def opacity_field(model: SplatModel, origin: np.ndarray, voxel: float, shape: tuple[int, int, int]) -> np.ndarray:
+    """The splat's opacity 1 - prod(1 - alpha_i) at the centres of a voxel grid -> [X, Y, Z] in [0, 1)."""
+    opacity = model.opacity().astype(np.float64)
+    # The grid samples the field at voxel centres: a Gaussian thinner than a voxel (a flat disc on the
+    # surface) would slip between them. Widening each by 0.3 voxel, as the rasteriser's 0.3 px
+    # low-pass does on screen, keeps it visible to the grid; on the demo stone it costs 0.4 % of
+    # volume (+3.1 % against +2.7 % unwidened), half a voxel costs 1.1 %.
+    scales = np.sqrt(np.exp(2.0 * model.scales_log.astype(np.float64)) + (LOWPASS_VOXELS * voxel) ** 2)
+    visible = opacity * 255.0 > 1.0  # a Gaussian below 1/255 everywhere adds nothing
+    opacity, scales = opacity[visible], scales[visible]
+    # alpha falls to 1/255 at Mahalanobis radius sqrt(2 ln(255 o)); the largest axis bounds it in space
+    reach = scales.max(axis=1) * np.sqrt(2.0 * np.log(255.0 * opacity))
+    log_t = _log_transmittance(model.means[visible].astype(np.float64),
+                               inverse_covariances(scales, model.quats[visible].astype(np.float64)),
+                               opacity, reach, np.asarray(origin, np.float64), float(voxel), *shape)
+    return 1.0 - np.exp(log_t)
