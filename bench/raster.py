@@ -110,6 +110,18 @@ def cold_start_ms() -> float:
     return round(float(out.stdout.strip().splitlines()[-1]), 1)
 
 
+def step_peak_rss_mb(n: int, width: int, height: int) -> float:
+    """Peak resident memory of a fresh process that builds the scene and runs two full training steps."""
+    code = ("import os; os.environ.setdefault('OMP_WAIT_POLICY', 'PASSIVE'); import resource, sys, torch;"
+            "sys.path.insert(0, 'BENCH'); from raster import bench_scene, _render;"
+            f"s = bench_scene({n}, {width}, {height});"
+            "p = [s[k].clone().requires_grad_(True) for k in ('means', 'log_scales', 'quats', 'opacity_logits', 'sh')];"
+            "[(_render(s, p, 'cpu')[0] - s['target']).abs().mean().backward() for _ in range(2)];"
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)").replace("BENCH", str(Path(__file__).parent))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return round(float(out.stdout.strip().splitlines()[-1]), 1)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="full sweeps (10k..400k, 128^2..1024^2)")
@@ -138,11 +150,14 @@ def main() -> None:
               f"{row['forward_ms']:>7.1f} {ref_ms:>8} {ratio:>6}", flush=True)
     cold = cold_start_ms()
     print(f"cold start (fresh process, warm numba cache, import + first 1k render): {cold:.0f} ms")
+    peak = step_peak_rss_mb(100_000, 512, 512)
+    print(f"peak memory of a process training at 100k / 512x512 (import included): {peak:.0f} MB")
     result = {
         "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                     "cpu_count": os.cpu_count(), "load_average": os.getloadavg()},
         "threads": args.threads, "torch": torch.__version__, "numba": numba.__version__,
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),  # this whole bench
+        "peak_rss_100k_512_mb": peak,
         "cold_start_ms": cold, "configs": configs,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -10,14 +10,19 @@ labelling with a per-pixel background model rather than a guess from colours alo
    (stones are nearly convex) is the first guess.
 2. Graph cut (min-cut over 8-neighbour pixels, scipy's max-flow), iterated with its models:
    - background: the plate times a smooth contact-shadow field, fitted as a local plane to
-     the current background in log space so it extrapolates up to the stone's edge. A
+     the current background in log space so it extrapolates up to the stone's edge. Its scale
+     follows the stone's size in pixels, as the contact shadow's does: a low camera squeezes
+     the shadow into a few rows under the stone, and a plane over a fixed, wider window lags
+     its steep deepening there, so the darker rows read as stone (4-5 rows of shadow in the
+     masks of a 320x240 scan's lowest ring). A
      global "darker and grey" shadow class, as GrabCut's colour model or a shadow threshold
      amounts to, also swallows the shaded, grazing rim of a textured stone (it cost the
      speckled stone 2-3% IoU); a field fitted around the stone does not;
    - stone: a smoothed colour histogram (log RGB) of the current stone pixels;
    - a small bonus inside the seed hull (nearly convex stones);
-   - a contrast-sensitive smoothness term on the noise-normalised shot-minus-plate image, so
-     the boundary follows edges of the stone, not of the plate or chart.
+   - a contrast-sensitive smoothness term on the noise-normalised difference between the shot
+     and the shadowed plate, so the boundary follows edges of the stone, not of the plate, the
+     chart or the contact shadow's own steep gradient (which would otherwise pull it down).
 3. Cleaning: largest connected component, holes filled.
 Known limit: a pale stone's shaded side that is smooth, grey and darker than the plate is
 explained by the shadow field as well as by the stone, and is lost. On the simulated stones it
@@ -55,7 +60,8 @@ class MaskSettings:
     seed_blob_fraction: float = 0.05  # smaller blobs than this share of the biggest are noise
     crop_margin: float = 0.35  # the cut runs on the seed's box grown by this fraction of its size
     cut_iterations: int = 3  # cut, refit shadow field and stone colours, cut again
-    shadow_field_px: float = 4.0  # Gaussian scale of the local plane fitted to the contact shadow
+    shadow_field_fraction: float = 0.022  # Gaussian scale of the shadow's local plane, per sqrt(seed area) px
+    min_shadow_field_px: float = 1.5  # below this the plane follows the noise more than the shadow
     shadow_field_gap_px: int = 2  # background this close to the stone is left out of the fit (mixed pixels)
     shadow_slack: float = 0.03  # log-ratio error allowed to the fitted field, on top of sensor noise
     colour_bins: int = 24  # per log-RGB axis of the stone colour histogram
@@ -296,7 +302,7 @@ def refine_graph_cut(shot: np.ndarray, plate: np.ndarray, seed: np.ndarray, sett
     shot_b, plate_b = cv2.GaussianBlur(shot, (0, 0), blur), cv2.GaussianBlur(plate, (0, 0), blur)
     relative = (shot_b - plate_b) / np.maximum(plate_b, _LOG_FLOOR)
     edge_sigma, edge_centre = _noise_sigma(relative, plate_b, border)
-    edges = (relative - edge_centre) / edge_sigma  # [H, W, 3] in noise units: the plate's own edges cancel
+    relative -= edge_centre
 
     ys, xs = np.nonzero(seed)
     h, w = seed.shape
@@ -312,15 +318,18 @@ def refine_graph_cut(shot: np.ndarray, plate: np.ndarray, seed: np.ndarray, sett
     frame = np.ones(luma_ratio.shape, dtype=bool)
     frame[1:-1, 1:-1] = False
     gap = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * settings.shadow_field_gap_px + 1,) * 2)
+    field_px = max(settings.min_shadow_field_px, settings.shadow_field_fraction * float(np.sqrt(seed.sum())))
     stone = seed[crop]
     for _ in range(settings.cut_iterations):
         if not stone.any():
             break
         background = ~cv2.dilate(stone.astype(np.uint8), gap).astype(bool)
-        shadow = shadow_field(luma_ratio, background, settings.shadow_field_px)
+        shadow = shadow_field(luma_ratio, background, field_px)
         background_nll = 0.5 * ((ratio - shadow[..., None]) ** 2 / variance).sum(axis=2) + background_cost_const
         stone_nll = colour_model(colours[stone], settings.colour_bins, settings.colour_floor)(colours)
-        stone = min_cut(background_nll - stone_nll + hull_prior, edges[crop], settings.smoothness, frame)
+        # in noise units against the shadowed plate: the plate's edges and the shadow's gradient cancel
+        edges = (relative[crop] - np.expm1(shadow)[..., None]) / edge_sigma[crop]  # [h, w, 3]
+        stone = min_cut(background_nll - stone_nll + hull_prior, edges, settings.smoothness, frame)
     out = np.zeros_like(seed)
     out[crop] = stone
     return out
