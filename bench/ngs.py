@@ -9,7 +9,8 @@ sampled during training, so the JSON also holds speed against error for every ru
 
     python bench/ngs.py [--scan SCAN] [--stone LOOK:SEED] [--size 256x192] [--preset fast] [--ablations]
 
-Without --scan a 6x40 simulated scan is shot and processed first (a few minutes).
+Without --scan a 6x40 simulated scan is shot and processed first (a few minutes). Writes
+bench/results/ngs.json and, beside it, ngs.svg: held-out PSNR against training time per run.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from station.ngs.pipeline import write_model
 from station.ngs.presets import make_config
 from station.ngs.sos import evaluate, load_surface
 from station.ngs.trainer import TrainConfig, Trainer
-from station.scanfolder import ScanFolder, atomic_write_json
+from station.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_json
 
 RESULTS = Path(__file__).parent / "results" / "ngs.json"
 
@@ -85,6 +86,34 @@ def score(run: Path, infill: Infill) -> dict:
     return {**metrics, "train_seconds": train["report"]["seconds"], "held_out_curve": train["held_out"]}
 
 
+def curve_svg(rows: dict[str, dict], title: str) -> str:
+    """Held-out PSNR against training seconds, one polyline per run, final SOS in the legend."""
+    width, height, left, bottom = 640, 360, 60, 40
+    points = [(p["seconds"], p["psnr"]) for r in rows.values() for p in r["held_out_curve"]]
+    if not points:
+        return ""
+    t_max = max(t for t, _ in points) or 1.0
+    p_lo, p_hi = min(p for _, p in points) - 0.5, max(p for _, p in points) + 0.5
+
+    def xy(t: float, p: float) -> str:
+        return f"{left + (width - left - 20) * t / t_max:.1f},{height - bottom - (height - bottom - 30) * (p - p_lo) / (p_hi - p_lo):.1f}"
+
+    colours = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"]
+    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" '
+             f'font-size="11"><rect width="100%" height="100%" fill="white"/><text x="{left}" y="16">{title}</text>',
+             f'<line x1="{left}" y1="{height - bottom}" x2="{width - 20}" y2="{height - bottom}" stroke="black"/>',
+             f'<line x1="{left}" y1="30" x2="{left}" y2="{height - bottom}" stroke="black"/>',
+             f'<text x="{width // 2}" y="{height - 8}">training seconds (0 to {t_max:.0f})</text>',
+             f'<text x="4" y="{height // 2}">PSNR {p_lo:.1f}-{p_hi:.1f} dB</text>']
+    for k, (name, r) in enumerate(rows.items()):
+        colour = colours[k % len(colours)]
+        line = " ".join(xy(p["seconds"], p["psnr"]) for p in r["held_out_curve"])
+        parts.append(f'<polyline points="{line}" fill="none" stroke="{colour}" stroke-width="2"/>')
+        parts.append(f'<text x="{width - 250}" y="{height - bottom - 14 * (len(rows) - k)}" fill="{colour}">'
+                     f'{name}: SOS {r["sos"]:.3f}</text>')
+    return "".join(parts) + "</svg>\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--scan", type=Path, help="a processed scan folder (default: shoot and process one)")
@@ -110,7 +139,7 @@ def main() -> None:
         infill = Infill.from_state_dict(torch.load(trained["ngs"] / "model" / "infill.pt", weights_only=True))
         rows = {name: score(run, infill) for name, run in trained.items()}
 
-    best_psnr = max(r["psnr"] for r in rows.values())
+    best_psnr = max(rows[method]["psnr"] for method in ("3dgs", "alpha", "ngs"))  # the ablations are not peers
     result = {
         "benchmark": "ngs",
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
@@ -122,6 +151,8 @@ def main() -> None:
         "ngs_psnr_gap_to_best_db": round(best_psnr - rows["ngs"]["psnr"], 3),
     }
     atomic_write_json(args.out, result)
+    svg = args.out.with_suffix(".svg")
+    atomic_write_bytes(svg, curve_svg(rows, f"held-out PSNR against time, {result['scan']}").encode())
 
     table = Table(title=f"NGS against its baselines ({args.preset} preset)")
     for column in ("method", "PSNR", "PSNR*", "SSIM", "SOS", "Gaussians", "scoring infill", "train s"):
@@ -130,7 +161,7 @@ def main() -> None:
         table.add_row(name, f"{r['psnr']:.2f}", f"{r['psnr_star']:.2f}", f"{r['ssim']:.4f}", f"{r['sos']:.3f}",
                       str(r["num_gaussians"]), str(r["num_infill"]), f"{r['train_seconds']:.0f}")
     Console().print(table)
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out} and {svg}")
 
 
 if __name__ == "__main__":
