@@ -65,6 +65,30 @@ def test_mask_ignores_contact_shadow_and_exposure_drift(look: str, shading: floa
     assert iou(mask, truth) >= 0.98
 
 
+def colour_chart(h: int = 240, w: int = 320, x0: int = 218, y0: int = 90) -> np.ndarray:
+    """A reflectance pattern [H, W, 3]: a 6 x 4 patch chart with a black frame, 1 elsewhere."""
+    rng = np.random.default_rng(7)
+    pattern = np.ones((h, w, 3), np.float32)
+    pattern[y0:y0 + 42, x0:x0 + 62] = 0.1  # the frame
+    for row in range(4):
+        for col in range(6):
+            y, x = y0 + 2 + 10 * row, x0 + 2 + 10 * col
+            pattern[y:y + 8, x:x + 8] = rng.uniform(0.15, 1.8, 3)
+    return pattern
+
+
+@pytest.mark.parametrize("look", ["dark", "speckled"])
+def test_a_colour_chart_the_stone_touches_stays_out_of_the_mask(look: str) -> None:
+    """The chart stands still, so it is in the plate too; its sharp edges are no reason to call it stone."""
+    shot, plate, truth = synthetic_pair(look)
+    chart = colour_chart()  # its left edge hides behind the stone's right flank
+    shot = np.where(truth[..., None], shot, shot * chart).astype(np.float32)
+    plate = (plate * chart).astype(np.float32)
+    mask = compute_mask(shot, plate)
+    assert (mask & ~truth & (chart[..., 0] != 1)).sum() <= 10
+    assert iou(mask, truth) >= 0.98
+
+
 @pytest.mark.parametrize("look", ["dark", "speckled"])
 def test_contact_shadow_below_a_stone_seen_from_a_low_camera_stays_out_of_the_mask(look: str) -> None:
     # squeezed into a few rows, the shadow deepens steeply right up to the stone's lowest edge
