@@ -132,6 +132,20 @@ def test_growth_stops_at_the_budget_keeping_the_largest_gradients():
     assert sorted(params["means"][:, 0].tolist()) == [0.0, 1.0, 1.0, 2.0, 3.0, 3.0]
 
 
+def test_the_gaussian_budget_follows_the_objects_size_on_screen_up_to_its_cap(scan, tmp_path):
+    per_pixel = DensifyConfig(max_gaussians=50_000, per_object_pixel=2.5)
+    assert per_pixel.budget_for(4_000.0) == 10_000
+    assert per_pixel.budget_for(30_000.0) == 50_000  # capped
+    assert per_pixel.budget_for(None) == 50_000  # no masks: the cap is the budget
+    assert DensifyConfig(max_gaussians=7_000).budget_for(4_000.0) == 7_000  # a fixed budget stays fixed
+    scene = load_scene(scan[0])
+    cfg = replace(TINY, densify=replace(TINY.densify, max_gaussians=10_000, per_object_pixel=2.0))
+    trainer = Trainer(scene, cfg, tmp_path)
+    masked = [float(v.mask.sum()) for v in scene.train]
+    assert trainer.gaussian_budget == round(2.0 * sum(masked) / len(masked))
+    assert trainer.strategy.cfg.max_gaussians == trainer.gaussian_budget
+
+
 def test_loss_terms_vanish_for_a_perfect_alpha_and_switch_off_by_weight():
     mask = torch.zeros(16, 16)
     mask[4:12, 4:12] = 1

@@ -39,6 +39,7 @@ def write_model(trainer: Trainer, report: TrainReport) -> None:
         "config": asdict(trainer.cfg),
         "losses": trainer.losses,
         "held_out": trainer.evals,
+        "gaussian_budget": trainer.gaussian_budget,
         "densify": trainer.strategy.state.history,
         "ngs": trainer.ngs.history if trainer.ngs else [],
     }

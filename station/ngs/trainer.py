@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Literal
 
@@ -67,6 +67,12 @@ class TrainReport:
     model_dir: str
 
 
+def object_pixels(scene: SceneData) -> float | None:
+    """Pixels the object covers in the mean masked training view; None without masks."""
+    areas = [float(view.mask.sum()) for view in scene.train if view.mask is not None]
+    return sum(areas) / len(areas) if areas else None
+
+
 def injected_nan_step(model_dir: Path) -> int | None:
     """The step INJECT_NAN_ENV poisons for this model folder, or None (always, outside the tests)."""
     step, _, folder = os.environ.get(INJECT_NAN_ENV, "").partition(":")
@@ -84,7 +90,10 @@ class Trainer:
         self.scene, self.cfg, self.model_dir = scene, cfg, Path(model_dir)
         self.model = Gaussians.from_points(scene.points, scene.point_colors, cfg.sh_degree, cfg.seed)
         self.optimizers = self._make_optimizers()
-        self.strategy = DefaultStrategy(cfg.densify.scaled(cfg.steps), scene.scene_scale, cfg.seed)
+        densify = cfg.densify.scaled(cfg.steps)
+        self.gaussian_budget = densify.budget_for(object_pixels(scene))
+        self.strategy = DefaultStrategy(replace(densify, max_gaussians=self.gaussian_budget), scene.scene_scale,
+                                        cfg.seed)
         self.ngs = NGSPhases(cfg.ngs, cfg.steps, cfg.seed) if cfg.method == "ngs" else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.cameras = [Camera(v.viewmat, v.K, v.width, v.height) for v in scene.train]
