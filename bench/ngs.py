@@ -4,13 +4,15 @@ Each method trains on the same processed scan with the same preset (all three sh
 count and learning rate; only the losses and the infill differ), then is scored with the NGS run's
 infill, as the paper does, so SOS compares like with like. `--ablations` adds the paper's
 ablations of NGS (no erosion, no pruning, no L_f, no LR reset, no colour reset) and ours (L_f on the
-rendered alpha after the freeze, as the reference does, instead of the surface's own). Held-out PSNR is
-sampled during training, so the JSON also holds speed against error for every run.
+rendered alpha after the freeze, as the reference does, instead of the surface's own). Held-out PSNR and
+SOS are sampled during training, so the JSON also holds speed against error for every run. Presets after
+the first (`--presets fast,paper`) add an NGS run each, for speed against error across presets.
 
-    python bench/ngs.py [--scan SCAN] [--stone LOOK:SEED] [--size 256x192] [--preset fast] [--ablations]
+    python bench/ngs.py [--scan SCAN] [--stone LOOK:SEED] [--size 256x192] [--presets fast[,paper]] [--first-sizes]
+                        [--ablations]
 
 Without --scan a 6x40 simulated scan is shot and processed first (a few minutes). Writes
-bench/results/ngs.json and, beside it, ngs.svg: held-out PSNR against training time per run.
+bench/results/ngs.json and, beside it, ngs.svg: held-out PSNR and SOS against training time per run.
 """
 
 from __future__ import annotations
@@ -83,35 +85,53 @@ def score(run: Path, infill: Infill) -> dict:
     metrics = evaluate(surface, infill, scene.test)
     metrics.pop("views")
     train = scan.read_json(scan.model_dir / "train_metrics.json")
-    return {**metrics, "train_seconds": train["report"]["seconds"], "held_out_curve": train["held_out"]}
+    return {**metrics, "steps": train["report"]["steps"], "planned_steps": train["planned_steps"],
+            "extensions": train["extensions"], "train_seconds": train["report"]["seconds"],
+            "held_out_curve": train["held_out"]}
+
+
+COLOURS = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"]
+
+
+def curve_panel(rows: dict[str, dict], key: str, label: str, top: int, t_max: float) -> str:
+    """One 640x300 panel: held-out `key` against training seconds, one polyline per run, final value in the legend."""
+    width, height, left, bottom = 640, 300, 60, 40
+    curves = {name: [(p["seconds"], p[key]) for p in r["held_out_curve"] if p.get(key) is not None]
+              for name, r in rows.items()}
+    values = [v for curve in curves.values() for _, v in curve]
+    if not values:
+        return ""
+    lo, hi = min(values), max(values)
+    lo, hi = lo - 0.05 * (hi - lo or 1.0), hi + 0.05 * (hi - lo or 1.0)
+
+    def xy(t: float, v: float) -> str:
+        return f"{left + (width - left - 20) * t / t_max:.1f},{top + height - bottom - (height - bottom - 30) * (v - lo) / (hi - lo):.1f}"
+
+    parts = [f'<line x1="{left}" y1="{top + height - bottom}" x2="{width - 20}" y2="{top + height - bottom}" stroke="black"/>',
+             f'<line x1="{left}" y1="{top + 30}" x2="{left}" y2="{top + height - bottom}" stroke="black"/>',
+             f'<text x="{width // 2}" y="{top + height - 8}">training seconds (0 to {t_max:.0f})</text>',
+             f'<text x="4" y="{top + 20}">{label} {lo:.3g}-{hi:.3g}</text>']
+    for k, (name, curve) in enumerate(curves.items()):
+        if not curve:
+            continue
+        colour = COLOURS[k % len(COLOURS)]
+        parts.append(f'<polyline points="{" ".join(xy(t, v) for t, v in curve)}" fill="none" stroke="{colour}" '
+                     f'stroke-width="2"/>')
+        parts.append(f'<text x="{width - 300}" y="{top + height - bottom - 14 * (len(curves) - k)}" fill="{colour}">'
+                     f'{name}: {rows[name][key]:.3f}</text>')
+    return "".join(parts)
 
 
 def curve_svg(rows: dict[str, dict], title: str) -> str:
-    """Held-out PSNR against training seconds, one polyline per run, final SOS in the legend."""
-    width, height, left, bottom = 640, 360, 60, 40
-    points = [(p["seconds"], p["psnr"]) for r in rows.values() for p in r["held_out_curve"]]
-    if not points:
+    """Held-out PSNR (top) and SOS (bottom, once an infill exists) against training seconds."""
+    seconds = [p["seconds"] for r in rows.values() for p in r["held_out_curve"]]
+    if not seconds:
         return ""
-    t_max = max(t for t, _ in points) or 1.0
-    p_lo, p_hi = min(p for _, p in points) - 0.5, max(p for _, p in points) + 0.5
-
-    def xy(t: float, p: float) -> str:
-        return f"{left + (width - left - 20) * t / t_max:.1f},{height - bottom - (height - bottom - 30) * (p - p_lo) / (p_hi - p_lo):.1f}"
-
-    colours = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"]
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" '
-             f'font-size="11"><rect width="100%" height="100%" fill="white"/><text x="{left}" y="16">{title}</text>',
-             f'<line x1="{left}" y1="{height - bottom}" x2="{width - 20}" y2="{height - bottom}" stroke="black"/>',
-             f'<line x1="{left}" y1="30" x2="{left}" y2="{height - bottom}" stroke="black"/>',
-             f'<text x="{width // 2}" y="{height - 8}">training seconds (0 to {t_max:.0f})</text>',
-             f'<text x="4" y="{height // 2}">PSNR {p_lo:.1f}-{p_hi:.1f} dB</text>']
-    for k, (name, r) in enumerate(rows.items()):
-        colour = colours[k % len(colours)]
-        line = " ".join(xy(p["seconds"], p["psnr"]) for p in r["held_out_curve"])
-        parts.append(f'<polyline points="{line}" fill="none" stroke="{colour}" stroke-width="2"/>')
-        parts.append(f'<text x="{width - 250}" y="{height - bottom - 14 * (len(rows) - k)}" fill="{colour}">'
-                     f'{name}: SOS {r["sos"]:.3f}</text>')
-    return "".join(parts) + "</svg>\n"
+    t_max = max(seconds) or 1.0
+    return (f'<svg xmlns="http://www.w3.org/2000/svg" width="640" height="620" font-family="sans-serif" font-size="11">'
+            f'<rect width="100%" height="100%" fill="white"/><text x="60" y="16">{title}</text>'
+            f'{curve_panel(rows, "psnr", "held-out PSNR dB", 10, t_max)}'
+            f'{curve_panel(rows, "sos", "held-out SOS", 320, t_max)}</svg>\n')
 
 
 def main() -> None:
@@ -119,17 +139,31 @@ def main() -> None:
     parser.add_argument("--scan", type=Path, help="a processed scan folder (default: shoot and process one)")
     parser.add_argument("--stone", default=None, help="simulated stone: seed, look:seed or a mesh path")
     parser.add_argument("--size", default="256x192")
-    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--presets", default="fast",
+                        help="comma list: the first trains all three methods, each further one an NGS run")
     parser.add_argument("--ablations", action="store_true")
+    parser.add_argument("--first-sizes", action="store_true",
+                        help="further presets keep the first preset's Gaussian budget and infill levels (at 256x192 the "
+                             "paper preset grew 317k Gaussians by step 6,000 and a 692k-Gaussian infill: hours on 2 cores)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         source = args.scan or shoot_and_process(work, args.stone, args.size)
-        runs = {method: make_config(method, args.preset) for method in ("3dgs", "alpha", "ngs")}
+        preset, *more_presets = args.presets.split(",")
+        runs = {method: make_config(method, preset) for method in ("3dgs", "alpha", "ngs")}
         if args.ablations:
             runs.update(ablations(runs["ngs"]))
+        for name in more_presets:
+            cfg, label = make_config("ngs", name), f"ngs, {name} preset"
+            if args.first_sizes:
+                first = runs["ngs"]
+                cfg = replace(cfg, densify=replace(cfg.densify, max_gaussians=first.densify.max_gaussians,
+                                                   per_object_pixel=first.densify.per_object_pixel),
+                              ngs=replace(cfg.ngs, infill=first.ngs.infill))
+                label += f", {preset} sizes"
+            runs[label] = cfg
         trained = {}
         for name, cfg in runs.items():
             started = time.perf_counter()
@@ -145,7 +179,8 @@ def main() -> None:
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
         "threads": os.cpu_count(),
         "scan": str(args.scan or f"simulated {args.stone or 'default stone'} at {args.size}, 6x40"),
-        "preset": args.preset,
+        "presets": args.presets.split(","),
+        "further_presets_on_first_sizes": args.first_sizes,
         "peer": "3dgs and 3dgs+alpha, same preset, same run, scored with the NGS infill",
         "methods": rows,
         "ngs_psnr_gap_to_best_db": round(best_psnr - rows["ngs"]["psnr"], 3),
@@ -154,12 +189,12 @@ def main() -> None:
     svg = args.out.with_suffix(".svg")
     atomic_write_bytes(svg, curve_svg(rows, f"held-out PSNR against time, {result['scan']}").encode())
 
-    table = Table(title=f"NGS against its baselines ({args.preset} preset)")
-    for column in ("method", "PSNR", "PSNR*", "SSIM", "SOS", "Gaussians", "scoring infill", "train s"):
+    table = Table(title=f"NGS against its baselines ({preset} preset)")
+    for column in ("method", "PSNR", "PSNR*", "SSIM", "SOS", "Gaussians", "scoring infill", "steps", "train s"):
         table.add_column(column, justify="right" if column != "method" else "left")
     for name, r in rows.items():
         table.add_row(name, f"{r['psnr']:.2f}", f"{r['psnr_star']:.2f}", f"{r['ssim']:.4f}", f"{r['sos']:.3f}",
-                      str(r["num_gaussians"]), str(r["num_infill"]), f"{r['train_seconds']:.0f}")
+                      str(r["num_gaussians"]), str(r["num_infill"]), str(r["steps"]), f"{r['train_seconds']:.0f}")
     Console().print(table)
     print(f"wrote {args.out} and {svg}")
 

@@ -81,8 +81,13 @@ def test_training_curves_are_inline_polylines_and_absent_held_out_error_is_expla
     text = report(GOOD, {"losses": losses})
     assert text.count("<polyline") == 2  # loss and image, not the seconds column
     assert "Held-out error was not recorded" in text
-    with_eval = report(GOOD, {"losses": losses, "eval": [{"step": 500, "psnr": 28.0}, {"step": 1000, "psnr": 31.0}]})
-    assert with_eval.count("<polyline") == 3
+    held_out = [{"step": 500, "psnr": 28.0, "sos": None}, {"step": 1000, "psnr": 31.0, "sos": 0.91},
+                {"step": 1500, "psnr": 31.1, "sos": 0.95}]
+    with_eval = report(GOOD, {"losses": losses, "held_out": held_out, "planned_steps": 1000, "extensions": [
+        {"step": 1000, "extend": True, "reason": "SOS 0.910 below 0.95 and still rising"},
+        {"step": 1500, "extend": False, "reason": "SOS 0.950 reached 0.95, PSNR flat"}]})
+    assert with_eval.count("<polyline") == 4  # losses, held-out PSNR and held-out SOS
+    assert "Planned 1000 steps, trained 1500" in with_eval and "SOS 0.910 below 0.95 and still rising" in with_eval
 
 
 def test_a_curve_maps_its_extremes_to_the_plot_edges_and_skips_non_numbers():

@@ -21,6 +21,7 @@ from station.ngs.pipeline import write_model
 from station.ngs.raster import rasterization
 from station.ngs.presets import make_config
 from station.ngs.sos import evaluate_scan, score_splat
+from station.ngs.stopping import ExtendConfig, extension_decision
 from station.ngs.strategy import DefaultStrategy, DensifyConfig
 from station.ngs.trainer import TrainConfig, Trainer
 from test_ngs_infill import ring_cameras, sphere_surface
@@ -223,6 +224,63 @@ def test_a_resumed_run_ends_with_the_same_parameters_as_an_uninterrupted_one(sca
     torch.testing.assert_close(resumed.ngs.infill.means, whole.ngs.infill.means)
 
 
+def test_training_goes_on_past_the_plan_while_held_out_sos_rises_and_stops_at_the_cap(scan, tmp_path):
+    scene = load_scene(scan[0])
+    rising = ExtendConfig(max_extra_steps=20, sos_target=1.01, min_sos_gain=-1.0)  # any SOS counts as rising
+    trainer = Trainer(scene, replace(TINY, eval_every=10, extend=rising), tmp_path / "rising")
+    report = trainer.run()
+    assert report.steps == TINY.steps + 20
+    assert [d["extend"] for d in trainer.extensions] == [True, True, False]
+    assert "cap of 20" in trainer.extensions[-1]["reason"]
+    assert all(e["sos"] is not None for e in trainer.evals if e["step"] > trainer.ngs.build_step)
+    flat = ExtendConfig(max_extra_steps=20, min_sos_gain=2.0, min_psnr_gain_db=100.0)
+    trainer = Trainer(scene, replace(TINY, eval_every=10, extend=flat), tmp_path / "flat")
+    assert trainer.run().steps == TINY.steps
+    assert trainer.extensions == [{**trainer.extensions[0], "extend": False}]
+    assert "stopped improving" in trainer.extensions[0]["reason"] or "reached" in trainer.extensions[0]["reason"]
+
+
+def test_the_extension_decision_reads_the_last_two_evaluations():
+    cfg = ExtendConfig(max_extra_steps=1_000)
+    evals = [{"step": 2500, "psnr": 40.0, "sos": 0.90}, {"step": 3000, "psnr": 40.1, "sos": 0.93}]
+    assert extension_decision(cfg, evals, 0, 500)["extend"]  # below target and rising
+    assert not extension_decision(cfg, evals, 600, 500)["extend"]  # the next block would pass the cap
+    reached = [evals[0], {**evals[1], "sos": 0.96}]
+    assert not extension_decision(cfg, reached, 0, 500)["extend"]
+    plateau = [evals[0], {**evals[1], "sos": 0.902}]
+    assert not extension_decision(cfg, plateau, 0, 500)["extend"]
+    learning = [evals[0], {**evals[1], "sos": 0.96, "psnr": 40.5}]
+    assert extension_decision(cfg, learning, 0, 500)["extend"]  # opaque, but the photos still improve
+    before_infill = [{"step": 500, "psnr": 30.0, "sos": None}, {"step": 1000, "psnr": 30.1, "sos": None}]
+    assert not extension_decision(cfg, before_infill, 0, 500)["extend"]
+    assert extension_decision(ExtendConfig(), evals, 0, 500)["reason"] == "extension off"
+
+
+def test_a_run_killed_during_its_extension_resumes_to_the_same_end(scan, tmp_path):
+    scene = load_scene(scan[0])
+    cfg = replace(TINY, eval_every=10, checkpoint_every=10,
+                  extend=ExtendConfig(max_extra_steps=20, sos_target=1.01, min_sos_gain=-1.0))
+    whole = Trainer(scene, cfg, tmp_path / "whole")
+    whole.run()
+    killed = Trainer(scene, cfg, tmp_path / "killed")
+    train_step = killed.train_step
+
+    def dying(step: int) -> dict:
+        if step == TINY.steps + 15:
+            raise KeyboardInterrupt
+        return train_step(step)
+
+    killed.train_step = dying
+    with pytest.raises(KeyboardInterrupt):
+        killed.run()
+    resumed = Trainer(scene, cfg, tmp_path / "killed")
+    report = resumed.run()
+    assert report.resumed_from == TINY.steps + 10 and report.steps == whole.step
+    assert resumed.extensions == whole.extensions
+    for name, value in whole.model.params.items():
+        torch.testing.assert_close(resumed.model.params[name], value)
+
+
 def test_a_checkpoint_from_another_configuration_is_refused(scan, tmp_path):
     scene = load_scene(scan[0])
     Trainer(scene, replace(TINY, steps=20), tmp_path).run()
@@ -242,6 +300,7 @@ def test_trained_ngs_model_is_written_and_scored_end_to_end(tmp_path):
     result = evaluate_scan(tmp_path)
     assert result["infill_source"] == "ngs"
     assert result["psnr"] > 20
+    assert held_out[-1]["sos"] == pytest.approx(result["sos"], abs=1e-6)  # the curve ends where the score is
     assert result["sos"] > 0.1  # a 300-step run: the infill is already mostly hidden (T < 0.1)
     assert len(list((tmp_path / "model" / "sos").glob("*.png"))) == 2
     write_inria_ply(tmp_path / "elsewhere.ply", trainer.model)

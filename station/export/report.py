@@ -249,10 +249,18 @@ def _curves(train: dict) -> str:
     keys = [k for k in losses[0] if k not in ("step", "seconds")]
     parts.append('<div class="row">' + "".join(svg_curve(steps, [row.get(k) for row in losses], f"training {k} loss", "")
                                                 for k in keys) + "</div>")
-    held = train.get("eval") or []
+    held = train.get("held_out") or []
     if held:
-        parts.append('<div class="row">' + svg_curve([r.get("step", i) for i, r in enumerate(held)],
-                                                     [r.get("psnr") for r in held], "held-out PSNR", "dB") + "</div>")
+        steps = [r.get("step", i) for i, r in enumerate(held)]
+        parts.append('<div class="row">' + svg_curve(steps, [r.get("psnr") for r in held], "held-out PSNR", "dB")
+                     + svg_curve(steps, [r.get("sos") for r in held], "held-out SOS (once the infill exists)", "")
+                     + "</div>")
+        decisions = train.get("extensions") or []
+        if any(d.get("extend") for d in decisions):
+            first = next(d for d in decisions if d.get("extend"))
+            parts.append(f"<p>Planned {train.get('planned_steps')} steps, trained {steps[-1]}: extended at step "
+                         f"{first.get('step')} ({html.escape(first.get('reason', ''))}), stopped at step "
+                         f"{decisions[-1].get('step')} ({html.escape(decisions[-1].get('reason', ''))}).</p>")
     else:
         parts.append("<p>Held-out error was not recorded during training; the final held-out figures are in "
                      "the table above.</p>")

@@ -39,6 +39,8 @@ def write_model(trainer: Trainer, report: TrainReport) -> None:
         "config": asdict(trainer.cfg),
         "losses": trainer.losses,
         "held_out": trainer.evals,
+        "planned_steps": trainer.cfg.steps,
+        "extensions": trainer.extensions,
         "gaussian_budget": trainer.gaussian_budget,
         "densify": trainer.strategy.state.history,
         "ngs": trainer.ngs.history if trainer.ngs else [],

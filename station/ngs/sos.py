@@ -59,6 +59,29 @@ def _join(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> dict[str, t
     return {k: torch.cat([a[k], b[k]]) for k in a}
 
 
+def sos_colours(g: dict[str, torch.Tensor], noise: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The SOS scene: the surface pure red with its own opacities, the infill pure green and opaque."""
+    red = torch.tensor([1.0, 0.0, 0.0]).expand(len(g["means"]), 3)
+    green = torch.tensor([0.0, 1.0, 0.0]).expand(len(noise["means"]), 3)
+    return _join(_flat(g, red), _flat(noise, green))
+
+
+def view_transmittance(sos_scene: dict[str, torch.Tensor], view: View, backend: str = "auto"
+                       ) -> tuple[float, np.ndarray, np.ndarray]:
+    """T_v = sum(green) / sum(mask), the green image, and the mask: the view's, else the SOS render's alpha."""
+    sos_rgb, sos_alpha = _render(sos_scene, view, None, backend)
+    mask = view.mask.numpy() if view.mask is not None else sos_alpha
+    return float(sos_rgb[..., 1].sum() / max(float(mask.sum()), EPS)), sos_rgb[..., 1], mask
+
+
+def held_out_sos(surface: dict[str, torch.Tensor], infill: Infill, views: list[View], backend: str = "auto") -> float | None:
+    """Mean SOS of activated surface parameters over `views`; None when there is no infill to hide."""
+    if not views or len(infill) == 0:
+        return None
+    scene = sos_colours(surface, infill.gaussians(1.0))
+    return float(np.mean([sos_of_transmittance(view_transmittance(scene, view, backend)[0]) for view in views]))
+
+
 def evaluate(surface: Gaussians, infill: Infill, views: list[View], out_dir: Path | None = None,
              backend: str = "auto") -> dict:
     """Metrics on held-out views; writes one 16-bit transmittance PNG per view into out_dir."""
@@ -71,28 +94,24 @@ def evaluate(surface: Gaussians, infill: Infill, views: list[View], out_dir: Pat
     if m == 0:  # no green to hide: every view would score a meaningless SOS of 1
         raise BadInputError("SOS needs an infill to hide, and this one is empty (the surface spans no volume "
                             "that survives pruning and erosion); retrain, or score with a coarser infill")
-    green = torch.tensor([0.0, 1.0, 0.0]).expand(m, 3)
-    red = torch.tensor([1.0, 0.0, 0.0]).expand(n, 3)
     noise_sh = torch.zeros(m, g["colors"].shape[1], 3)
-    noise_sh[:, 0] = (green - 0.5) / 0.28209479177387814
+    noise_sh[:, 0] = (torch.tensor([0.0, 1.0, 0.0]) - 0.5) / 0.28209479177387814
     starred = _join(_flat(g, g["colors"]), _flat(noise, noise_sh))
-    sos_scene = _join(_flat(g, red), _flat(noise, green))
+    sos_scene = sos_colours(g, noise)
     rows = []
     for view in views:
         gt = view.image.numpy()
-        render, alpha = _render(_flat(g, g["colors"]), view, sh_degree, backend)
-        sos_rgb, sos_alpha = _render(sos_scene, view, None, backend)
+        render, _ = _render(_flat(g, g["colors"]), view, sh_degree, backend)
+        transmittance, green, mask = view_transmittance(sos_scene, view, backend)
         mask_source = "mask" if view.mask is not None else "rendered alpha"
-        mask = view.mask.numpy() if view.mask is not None else sos_alpha
         psnr, ssim = _image_metrics(render, gt, mask)
-        star_render, _ = _render(starred, view, sh_degree, backend) if m else (render, alpha)
+        star_render, _ = _render(starred, view, sh_degree, backend)
         psnr_star, ssim_star = _image_metrics(star_render, gt, mask)
-        transmittance = float(sos_rgb[..., 1].sum() / max(float(mask.sum()), EPS))
         rows.append({"view": view.name, "psnr": psnr, "ssim": ssim, "psnr_star": psnr_star, "ssim_star": ssim_star,
                      "transmittance": transmittance, "sos": sos_of_transmittance(transmittance),
                      "mask_source": mask_source})
         if out_dir is not None:
-            png = np.round(np.clip(sos_rgb[..., 1], 0, 1) * 65535).astype(np.uint16)
+            png = np.round(np.clip(green, 0, 1) * 65535).astype(np.uint16)
             ok, encoded = cv2.imencode(".png", png)
             if ok:
                 atomic_write_bytes(Path(out_dir) / f"{Path(view.name).stem}_transmittance.png", encoded.tobytes())

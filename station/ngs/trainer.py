@@ -23,6 +23,8 @@ from station.ngs.infill import Camera
 from station.ngs.losses import LossConfig, total_loss
 from station.ngs.ngs_schedule import NGSConfig, NGSPhases
 from station.ngs.raster import rasterization
+from station.ngs.sos import held_out_sos
+from station.ngs.stopping import ExtendConfig, extension_decision
 from station.ngs.strategy import DefaultStrategy, DensifyConfig, DensifyState
 from station.scanfolder import atomic_write_with
 
@@ -47,12 +49,13 @@ class TrainConfig:
     lr_shN: float = 2.5e-3 / 20
     downscale: int = 1
     checkpoint_every: int = 500
-    eval_every: int = 0  # held-out PSNR every this many steps (0: off), the speed-against-error evidence
+    eval_every: int = 0  # held-out PSNR and SOS every this many steps (0: off), the speed-against-error evidence
     seed: int = 0
     backend: str = "auto"
     loss: LossConfig = field(default_factory=LossConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # in 30k-step units, scaled to `steps`
     ngs: NGSConfig = field(default_factory=NGSConfig)
+    extend: ExtendConfig = field(default_factory=ExtendConfig)  # blocks of eval_every past `steps` (stopping.py)
 
 
 @dataclass
@@ -98,9 +101,11 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.cameras = [Camera(v.viewmat, v.K, v.width, v.height) for v in scene.train]
         self.step = 0
+        self.planned_steps = cfg.steps  # grows by eval_every per extension
         self.seconds = 0.0
         self.losses: list[dict] = []
         self.evals: list[dict] = []
+        self.extensions: list[dict] = []
         self.nan_step = injected_nan_step(self.model_dir)
 
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
@@ -119,7 +124,7 @@ class Trainer:
         return min(step // every, self.cfg.sh_degree)
 
     def means_lr_at(self, step: int) -> float:
-        factor = self.ngs.means_lr_factor(step) if self.ngs else 0.01 ** (step / self.cfg.steps)
+        factor = self.ngs.means_lr_factor(step) if self.ngs else 0.01 ** (min(step, self.cfg.steps) / self.cfg.steps)
         return self.cfg.lr_means * self.scene.scene_scale * factor
 
     def train_step(self, step: int) -> dict[str, float]:
@@ -167,17 +172,20 @@ class Trainer:
     def run(self, progress: Callable[[int, dict], None] | None = None) -> TrainReport:
         resumed_from = self.load_checkpoint()
         started = time.perf_counter() - self.seconds
-        while self.step < self.cfg.steps:
+        while self.step < self.planned_steps:
             terms = self.train_step(self.step)
             self.step += 1
             self.seconds = time.perf_counter() - started
-            if self.step % 100 == 0 or self.step == self.cfg.steps:
+            last = self.step == self.planned_steps
+            if self.step % 100 == 0 or last:
                 self.losses.append({"step": self.step, "seconds": round(self.seconds, 2), **terms})
                 if progress:
                     progress(self.step, terms)
-            if self.cfg.eval_every and (self.step % self.cfg.eval_every == 0 or self.step == self.cfg.steps):
-                self.evals.append({"step": self.step, "seconds": round(self.seconds, 2), "psnr": self.held_out_psnr()})
-            if self.step % self.cfg.checkpoint_every == 0 or self.step == self.cfg.steps:
+            if self.cfg.eval_every and (self.step % self.cfg.eval_every == 0 or last):
+                self.evals.append({"step": self.step, "seconds": round(self.seconds, 2), **self.held_out()})
+                if last:
+                    self._decide_extension()
+            if self.step % self.cfg.checkpoint_every == 0 or last:
                 self.save_checkpoint()
         return TrainReport(
             method=self.cfg.method,
@@ -189,6 +197,22 @@ class Trainer:
             resumed_from=resumed_from,
             model_dir=str(self.model_dir),
         )
+
+    def _decide_extension(self) -> None:
+        decision = extension_decision(self.cfg.extend, self.evals, self.planned_steps - self.cfg.steps,
+                                      self.cfg.eval_every)
+        self.extensions.append(decision)
+        if decision["extend"]:
+            self.planned_steps += self.cfg.eval_every
+
+    def held_out(self) -> dict[str, float | None]:
+        """Held-out PSNR, and SOS against the training infill once NGS has built one (else None)."""
+        infill = self.ngs.infill if self.ngs else None
+        sos = None
+        if infill is not None:
+            surface = {k: v.detach() for k, v in self.model.activated().items()}
+            sos = held_out_sos(surface, infill, self.scene.test, self.cfg.backend)
+        return {"psnr": self.held_out_psnr(), "sos": sos}
 
     def held_out_psnr(self) -> float:
         """Mean PSNR of the surface on the held-out views (render clamped, both sides masked)."""
@@ -212,6 +236,7 @@ class Trainer:
         return {
             "config": asdict(self.cfg),
             "step": self.step,
+            "planned_steps": self.planned_steps,
             "seconds": self.seconds,
             "model": self.model.state_dict(),
             "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
@@ -221,6 +246,7 @@ class Trainer:
             "generator": self.generator.get_state(),
             "losses": list(self.losses),
             "evals": list(self.evals),
+            "extensions": list(self.extensions),
         }
 
     def save_checkpoint(self) -> None:
@@ -244,7 +270,8 @@ class Trainer:
         if self.ngs:
             self.ngs.load_state_dict(state["ngs"])
         self.generator.set_state(state["generator"])
-        self.step, self.seconds = state["step"], state["seconds"]
+        self.step, self.seconds, self.planned_steps = state["step"], state["seconds"], state["planned_steps"]
         self.losses, self.evals = list(state["losses"]), list(state["evals"])
+        self.extensions = list(state["extensions"])
         return self.step
 
