@@ -1,0 +1,174 @@
+"""Mask benchmark: accuracy against the simulated truth and seconds per mask, ours against OpenCV's GrabCut.
+
+For each stone (procedural dark, pale, speckled and grey looks, and the real meshes in
+../shared/data/meshes when present) the simulated rig renders a shot at every `--step`th of the 40
+azimuths of all 6 rings, and one empty plate per ring. Each frame is exposed with sensor noise,
+written as a DNG and developed by `develop_raw`, as a scan's frames are. Each shot is then masked by:
+- ours: `compute_mask` with the default settings;
+- ours without the two boundary steps (the plate-colour rule for steep contact shadows, and the
+  matting of edge pixels), which is what the masks were before them;
+- the peer, OpenCV's GrabCut (5 iterations) on the 8-bit sRGB frame, initialised the usual way with
+  a rectangle: the box of our seed hull grown by 10 % on each side.
+Scores are against sim_truth's rule (stone covers at least half the pixel): IoU, and the false-stone
+and missed-stone pixels, per ring; and the seconds per mask.
+
+    python bench/masks.py [--size 320x240] [--step 5] [--stones dark,pale,speckled,grey,meshes]
+
+Prints a table and writes bench/results/masks.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from sim.dng import dng_bytes  # noqa: E402
+from sim.rig import make_stone  # noqa: E402
+from sim.scene import World, render  # noqa: E402
+from sim.sensor import SensorModel  # noqa: E402
+from station.capture.plan import default_elevations  # noqa: E402
+from station.process.develop import DevelopSettings, develop_raw  # noqa: E402
+from station.process.masks import (  # noqa: E402
+    MaskSettings, _border, _plate_matched, compute_mask, difference_mask, seed_from_cues,
+)
+from station.rig_geometry import RigGeometry  # noqa: E402
+
+SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
+EXPOSURE_S = 1 / 30
+AZIMUTHS = 40
+BEFORE = MaskSettings(matte_boundary=False, max_plate_coloured_stone=-1.0)
+
+
+def developed(radiance: np.ndarray, seed: list[int]) -> np.ndarray:
+    """Linear RGB of a frame exposed, written as a DNG and developed, as the scan pipeline does."""
+    sensor = SensorModel()
+    with tempfile.NamedTemporaryFile(suffix=".dng") as handle:
+        handle.write(dng_bytes(sensor.expose(radiance, EXPOSURE_S, 100, np.random.default_rng(seed)), sensor))
+        handle.flush()
+        return develop_raw(Path(handle.name), DevelopSettings()).linear
+
+
+def grabcut_mask(shot: np.ndarray, plate: np.ndarray) -> np.ndarray:
+    """OpenCV GrabCut from the box of our seed hull, grown by 10 % a side, on the 8-bit sRGB frame."""
+    settings = MaskSettings()
+    matched = _plate_matched(shot, plate, _border(shot.shape[:2], settings.border_fraction))
+    seed = seed_from_cues(difference_mask(shot, matched, settings), settings)
+    h, w = seed.shape
+    if not seed.any():
+        return seed
+    ys, xs = np.nonzero(seed)
+    my, mx = int(0.1 * (ys.max() - ys.min() + 1)) + 1, int(0.1 * (xs.max() - xs.min() + 1)) + 1
+    x0, y0 = max(0, xs.min() - mx), max(0, ys.min() - my)
+    x1, y1 = min(w - 1, xs.max() + mx), min(h - 1, ys.max() + my)
+    srgb = np.clip(shot / np.percentile(plate, 99.5), 0.0, 1.0) ** (1 / 2.2)
+    image = np.ascontiguousarray((srgb[..., ::-1] * 255).astype(np.uint8))
+    labels = np.zeros((h, w), np.uint8)
+    background_model, foreground_model = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.grabCut(image, labels, (int(x0), int(y0), int(x1 - x0), int(y1 - y0)),
+                background_model, foreground_model, 5, cv2.GC_INIT_WITH_RECT)
+    return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
+
+
+def score(mask: np.ndarray, truth: np.ndarray) -> dict:
+    return {"iou": float((mask & truth).sum() / max((mask | truth).sum(), 1)),
+            "false_stone_px": int((mask & ~truth).sum()), "missed_stone_px": int((~mask & truth).sum())}
+
+
+def stone_rows(spec: str, size: tuple[int, int], step: int) -> list[dict]:
+    world = World(make_stone(spec), rig=RigGeometry().scaled(*size))
+    methods = {
+        "ours": lambda shot, plate: compute_mask(shot, plate),
+        "ours_before_boundary_steps": lambda shot, plate: compute_mask(shot, plate, BEFORE),
+        "grabcut": grabcut_mask,
+    }
+    rows = []
+    for ring, elevation in enumerate(default_elevations(6)):
+        plate = developed(render(world, elevation, 0.0, stone_present=False).radiance, [ring, AZIMUTHS])
+        for a in range(0, AZIMUTHS, step):
+            frame = render(world, elevation, 360.0 * a / AZIMUTHS, stone_present=True)
+            shot = developed(frame.radiance, [ring, a])
+            for method, fn in methods.items():
+                started = time.perf_counter()
+                mask = fn(shot, plate)
+                seconds = time.perf_counter() - started
+                rows.append({"stone": world.stone.name, "ring": ring, "elevation_deg": elevation, "azimuth_index": a,
+                             "method": method, "seconds": seconds, **score(mask, frame.mask)})
+    return rows
+
+
+def summary(rows: list[dict]) -> list[dict]:
+    """Per stone, method and ring: mean and min IoU, mean false/missed pixels, mean seconds."""
+    groups: dict[tuple, list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["stone"], row["method"], row["ring"]), []).append(row)
+    out = []
+    for (stone, method, ring), group in groups.items():
+        ious = [g["iou"] for g in group]
+        out.append({"stone": stone, "method": method, "ring": ring, "elevation_deg": group[0]["elevation_deg"],
+                    "views": len(group), "iou_mean": round(float(np.mean(ious)), 4),
+                    "iou_min": round(float(np.min(ious)), 4),
+                    "false_stone_px_mean": round(float(np.mean([g["false_stone_px"] for g in group])), 1),
+                    "missed_stone_px_mean": round(float(np.mean([g["missed_stone_px"] for g in group])), 1),
+                    "seconds_mean": round(float(np.mean([g["seconds"] for g in group])), 4)})
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="320x240", help="simulated camera size WxH (the scan default)")
+    parser.add_argument("--step", type=int, default=5, help="mask every step-th of the 40 azimuths per ring")
+    parser.add_argument("--stones", default="dark,pale,speckled,grey,meshes",
+                        help="procedural looks, and 'meshes' for the real meshes in ../shared/data/meshes")
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "masks.json")
+    args = parser.parse_args()
+    size = tuple(int(v) for v in args.size.split("x"))
+    specs = []
+    for name in args.stones.split(","):
+        if name == "meshes":
+            specs += [str(p) for p in sorted(SHARED_MESHES.glob("*.ply"))] if SHARED_MESHES.is_dir() else []
+        else:
+            specs.append(f"{name}:3")
+    rows = [row for spec in specs for row in stone_rows(spec, size, args.step)]
+    table_rows = summary(rows)
+
+    table = Table(title=f"Masks at {size[0]}x{size[1]}: mean IoU against sim truth per ring, worst view, pixels per view")
+    for column in ("stone", "method", *[f"e{r}" for r in range(6)], "min", "false px", "missed px", "s/mask"):
+        table.add_column(column)
+    by_key: dict[tuple, list[dict]] = {}
+    for row in table_rows:
+        by_key.setdefault((row["stone"], row["method"]), []).append(row)
+    for (stone, method), group in by_key.items():
+        group.sort(key=lambda r: r["ring"])
+        table.add_row(stone, method, *[f"{g['iou_mean']:.4f}" for g in group], f"{min(g['iou_min'] for g in group):.4f}",
+                      f"{np.mean([g['false_stone_px_mean'] for g in group]):.0f}",
+                      f"{np.mean([g['missed_stone_px_mean'] for g in group]):.0f}",
+                      f"{np.mean([g['seconds_mean'] for g in group]):.3f}")
+    Console(width=180).print(table)
+    ours = np.mean([r["seconds"] for r in rows if r["method"] == "ours"])
+    peer = np.mean([r["seconds"] for r in rows if r["method"] == "grabcut"])
+    record = {
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+        "size": list(size), "views_per_ring": AZIMUTHS // args.step,
+        "seconds_per_mask": {"ours": round(float(ours), 4), "grabcut": round(float(peer), 4),
+                             "ours_over_grabcut": round(float(ours / peer), 3)},
+        "summary": table_rows, "rows": rows,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(record, indent=1))
+    print(f"ours {ours:.3f} s/mask, GrabCut {peer:.3f} s/mask (ratio {ours / peer:.2f}); wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
