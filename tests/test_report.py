@@ -88,6 +88,9 @@ def test_training_curves_are_inline_polylines_and_absent_held_out_error_is_expla
         {"step": 1500, "extend": False, "reason": "SOS 0.950 reached 0.95, PSNR flat"}]})
     assert with_eval.count("<polyline") == 4  # losses, held-out PSNR and held-out SOS
     assert "Planned 1000 steps, trained 1500" in with_eval and "SOS 0.910 below 0.95 and still rising" in with_eval
+    sh = {"trained": 1, "kept": 0, "tolerance_db": 0.1, "held_out_psnr": {"0": 41.2, "1": 41.25}}
+    with_sh = report(GOOD, {"losses": losses, "sh_degree": sh})
+    assert "written at degree 0" in with_sh and "41.20 dB at degree 0, 41.25 dB at degree 1" in with_sh
 
 
 def test_a_curve_maps_its_extremes_to_the_plot_edges_and_skips_non_numbers():

@@ -21,6 +21,7 @@ from station.ngs.pipeline import write_model
 from station.ngs.raster import rasterization
 from station.ngs.presets import make_config
 from station.ngs.sos import evaluate_scan, score_splat
+from station.ngs.sh_degree import cut_to_degree, sh_degree_choice
 from station.ngs.stopping import ExtendConfig, extension_decision
 from station.ngs.strategy import DefaultStrategy, DensifyConfig
 from station.ngs.trainer import TrainConfig, Trainer
@@ -303,11 +304,29 @@ def test_trained_ngs_model_is_written_and_scored_end_to_end(tmp_path):
     assert held_out[-1]["sos"] == pytest.approx(result["sos"], abs=1e-6)  # the curve ends where the score is
     assert result["sos"] > 0.1  # a 300-step run: the infill is already mostly hidden (T < 0.1)
     assert len(list((tmp_path / "model" / "sos").glob("*.png"))) == 2
+    # the written splat keeps the SH bands the held-out views asked for, and is scored as written
+    sh = json.loads((tmp_path / "model" / "train_metrics.json").read_text())["sh_degree"]
+    assert sh["trained"] == 1 and set(sh["held_out_psnr"]) == {"0", "1"}
+    written = torch.load(tmp_path / "model" / "surface.pt", weights_only=True)["params"]["shN"]
+    assert written.shape[1] == (sh["kept"] + 1) ** 2 - 1
+    assert result["psnr"] == pytest.approx(sh["held_out_psnr"][str(sh["kept"])], abs=1e-3)
     write_inria_ply(tmp_path / "elsewhere.ply", trainer.model)
     foreign = score_splat(tmp_path, tmp_path / "elsewhere.ply")
     assert foreign["infill_source"] == "ngs"
     assert foreign["sos"] == pytest.approx(result["sos"], abs=1e-6)
     assert len(list((tmp_path / "model" / "sos_elsewhere").glob("*.png"))) == 2
+
+
+def test_the_written_sh_degree_is_the_lowest_the_held_out_views_do_not_miss():
+    flat = {0: 40.00, 1: 40.05, 2: 40.08, 3: 40.02}
+    assert sh_degree_choice(3, flat.__getitem__, tolerance_db=0.1)["kept"] == 0
+    glossy = {0: 36.0, 1: 39.0, 2: 39.95, 3: 40.0}
+    choice = sh_degree_choice(3, glossy.__getitem__, tolerance_db=0.1)
+    assert choice["kept"] == 2 and choice["held_out_psnr"] == {"0": 36.0, "1": 39.0, "2": 39.95, "3": 40.0}
+    assert sh_degree_choice(1, lambda degree: float("nan"), tolerance_db=0.1)["kept"] == 1  # nothing held out
+    params = {"sh0": torch.zeros(5, 1, 3), "shN": torch.arange(5 * 15 * 3.0).reshape(5, 15, 3)}
+    cut = cut_to_degree(params, 1)
+    assert cut["shN"].shape == (5, 3, 3) and torch.equal(cut["shN"], params["shN"][:, :3])
 
 
 def test_methods_pick_their_losses_and_unknown_names_are_refused():

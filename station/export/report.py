@@ -264,6 +264,12 @@ def _curves(train: dict) -> str:
     else:
         parts.append("<p>Held-out error was not recorded during training; the final held-out figures are in "
                      "the table above.</p>")
+    sh = train.get("sh_degree")
+    if isinstance(sh, dict) and sh.get("held_out_psnr"):
+        by_degree = ", ".join(f"{value:.2f} dB at degree {degree}" for degree, value in sh["held_out_psnr"].items())
+        parts.append(f"<p>View-dependent colour: trained to SH degree {sh.get('trained')}, written at degree "
+                     f"{sh.get('kept')}, the lowest within {sh.get('tolerance_db')} dB of the trained degree's "
+                     f"held-out PSNR ({by_degree}).</p>")
     return "".join(parts)
 
 

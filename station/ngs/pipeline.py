@@ -13,16 +13,19 @@ import torch
 
 from station.ngs.dataset import load_scene
 from station.ngs.presets import make_config
+from station.ngs.sh_degree import cut_to_degree, sh_degree_choice
 from station.ngs.trainer import Trainer, TrainReport
 from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
 
 
 def write_model(trainer: Trainer, report: TrainReport) -> None:
-    """model/surface.pt, model/infill.pt (NGS) and model/train_metrics.json, each atomically."""
+    """model/surface.pt (colour cut to the SH degree the held-out views need), model/infill.pt (NGS) and
+    model/train_metrics.json, each atomically."""
     model_dir = trainer.model_dir
+    sh_choice = sh_degree_choice(trainer.cfg.sh_degree, trainer.held_out_psnr, trainer.cfg.sh_tolerance_db)
     surface = {
-        "params": trainer.model.state_dict(),
-        "sh_degree": trainer.cfg.sh_degree,
+        "params": cut_to_degree(trainer.model.state_dict(), sh_choice["kept"]),
+        "sh_degree": sh_choice["kept"],
         "scene_scale": trainer.scene.scene_scale,
         "downscale": trainer.cfg.downscale,
         "method": trainer.cfg.method,
@@ -41,6 +44,7 @@ def write_model(trainer: Trainer, report: TrainReport) -> None:
         "held_out": trainer.evals,
         "planned_steps": trainer.cfg.steps,
         "extensions": trainer.extensions,
+        "sh_degree": sh_choice,
         "gaussian_budget": trainer.gaussian_budget,
         "densify": trainer.strategy.state.history,
         "ngs": trainer.ngs.history if trainer.ngs else [],

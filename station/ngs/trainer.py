@@ -40,6 +40,8 @@ class TrainConfig:
     method: Method = "ngs"
     steps: int = 30_000
     sh_degree: int = 3
+    # written degree: the lowest whose held-out PSNR is within this of the trained degree's (sh_degree.py)
+    sh_tolerance_db: float = 0.1
     sh_degree_every: float = 1_000 / 30_000  # raise the SH degree by one every this fraction of the run
     lr_means: float = 1.6e-4  # x scene_scale, decayed to 1%
     lr_scales: float = 5e-3
@@ -214,8 +216,9 @@ class Trainer:
             sos = held_out_sos(surface, infill, self.scene.test, self.cfg.backend)
         return {"psnr": self.held_out_psnr(), "sos": sos}
 
-    def held_out_psnr(self) -> float:
-        """Mean PSNR of the surface on the held-out views (render clamped, both sides masked)."""
+    def held_out_psnr(self, sh_degree: int | None = None) -> float:
+        """Mean PSNR of the surface on the held-out views (render clamped, both sides masked), its colour
+        cut to `sh_degree` (default: the trained degree)."""
         if not self.scene.test:
             return float("nan")
         g = {k: v.detach() for k, v in self.model.activated().items()}
@@ -224,7 +227,8 @@ class Trainer:
             with torch.no_grad():
                 colors, _, _ = rasterization(
                     g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], view.viewmat[None],
-                    view.K[None], view.width, view.height, sh_degree=self.cfg.sh_degree, backend=self.cfg.backend,
+                    view.K[None], view.width, view.height,
+                    sh_degree=self.cfg.sh_degree if sh_degree is None else sh_degree, backend=self.cfg.backend,
                 )
             mask = view.mask[..., None] if view.mask is not None else torch.ones(1)
             mse = float(((colors[0].clamp(0, 1) - view.image) * mask).square().mean())
