@@ -11,8 +11,10 @@ import pytest
 import trimesh
 from PIL import Image
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from station.errors import BadInputError
+from station.process import poses
 from station.process.poses import PoseSettings, PosingError, calibrate_from_scan, pose_scan
 from station.process.rig_model import (
     PosedView, RigModel, apply_similarity, axis_rotation, calibrate_rig, rotation_angle_deg, umeyama,
@@ -263,3 +265,43 @@ def test_pure_sfm_poses_the_middlebury_temple_ring_within_one_percent_of_its_rad
     print(f"\ntemple ring: {len(common)} views, centre error max {err.max() / radius:.4%} "
           f"median {np.median(err) / radius:.4%} of radius {radius:.4f}, {report.seconds:.1f} s")
     assert err.max() < 0.01 * radius
+
+
+def cross_check_against(mapped: dict[str, np.ndarray], monkeypatch, tmp_path) -> dict:
+    """The cross-check's verdict when the free mapping comes back with `mapped` (COLMAP left out)."""
+    rig = RigModel.nominal(RIG, [15.0, 40.0, 65.0])
+    names = [f"e{e}_a{a:03d}.png" for e in range(3) for a in range(20)]
+    elevation_of = {n: (15.0, 40.0, 65.0)[int(n[1])] for n in names}
+    rig_poses = {n: rig.camera_to_world(elevation_of[n], 18.0 * int(n[4:7])) for n in names}
+    monkeypatch.setattr(poses.sfm, "write_position_priors", lambda database, priors: None)
+    monkeypatch.setattr(poses.sfm, "map_incremental", lambda *args: object())
+    monkeypatch.setattr(poses.sfm, "registered_poses", lambda rec: mapped(rig_poses))
+    return poses._cross_check(tmp_path / "db", tmp_path, tmp_path, rig_poses, elevation_of, rig, PoseSettings())
+
+
+def turned(c2w: np.ndarray, axis: np.ndarray, degrees: float) -> np.ndarray:
+    """`c2w` with its camera turned by `degrees` about `axis` in its own frame."""
+    out = c2w.copy()
+    out[:3, :3] = c2w[:3, :3] @ Rotation.from_rotvec(np.radians(degrees) * axis / np.linalg.norm(axis)).as_matrix()
+    return out
+
+
+def test_views_scattered_by_mapping_noise_are_no_drift_but_a_ring_turned_as_one_is(monkeypatch, tmp_path):
+    rng = np.random.default_rng(0)
+    scattered = cross_check_against(
+        lambda rig_poses: {n: turned(p, rng.normal(size=3), 0.6) for n, p in rig_poses.items()}, monkeypatch, tmp_path)
+    assert scattered["drifted_elevations"] == [] and scattered["flags"] == []
+    assert scattered["rotation_median_deg"] > 0.5  # each view on its own is further off than the threshold
+    slipped = cross_check_against(
+        lambda rig_poses: {n: turned(p, np.array([1.0, 0, 0]), 2.0) if n.startswith("e1") else p
+                           for n, p in rig_poses.items()}, monkeypatch, tmp_path)
+    assert slipped["drifted_elevations"] == [40.0]
+    assert slipped["ring_offsets"]["40.0"]["rotation_deg"] == pytest.approx(2.0, abs=0.05)
+
+
+def test_a_mapping_that_lost_most_views_gives_no_drift_verdict(monkeypatch, tmp_path):
+    result = cross_check_against(
+        lambda rig_poses: {n: turned(p, np.array([1.0, 0, 0]), 2.0) for n, p in list(rig_poses.items())[:30]},
+        monkeypatch, tmp_path)
+    assert "drifted_elevations" not in result
+    assert any("cross-check mapping inconclusive (30 of 60 views)" in f for f in result["flags"])

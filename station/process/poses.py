@@ -42,6 +42,7 @@ class PoseSettings:
     cross_check: bool = True
     drift_rotation_deg: float = 0.5  # a ring's shared turn against the rig, in its cameras' frame
     drift_centre_fraction: float = 0.01  # a ring's shared shift against the rig, of the orbit radius
+    min_cross_check_fraction: float = 0.7  # of the views the cross-check mapping must register to judge drift
     hull_resolution: int = 96
     # Foreign scans have no rig to lean on and often sparse views: pay for affine SIFT there (on the
     # Middlebury ring it halves the worst camera error, 1.1% -> 0.66% of the orbit radius).
@@ -209,8 +210,11 @@ def _cross_check(database: Path, image_dir: Path, work: Path, rig_poses: dict[st
     if missing:
         out["flags"].append(f"cross-check mapping registered {len(mapped)} of {len(rig_poses)} views; "
                             f"not: {', '.join(missing)}")
-    if len(mapped) < 3:
-        out["flags"].append("cross-check mapping failed: poses rest on the rig model alone")
+    if len(mapped) < max(3, settings.min_cross_check_fraction * len(rig_poses)):
+        # a mapping that lost this many views is itself in doubt (on a speckled stone it registered
+        # 111 of 240, every ring 1-2 deg off the exact rig): no verdict on drift from it
+        out["flags"].append(f"cross-check mapping inconclusive ({len(mapped)} of {len(rig_poses)} views): "
+                            "poses rest on the rig model alone")
         return out
     names = sorted(mapped)
     s, r, t = umeyama(np.array([mapped[n][:3, 3] for n in names]), np.array([rig_poses[n][:3, 3] for n in names]))
