@@ -40,9 +40,7 @@ from sim.scene import World, render  # noqa: E402
 from sim.sensor import SensorModel  # noqa: E402
 from station.capture.plan import default_elevations  # noqa: E402
 from station.process.develop import DevelopSettings, develop_raw  # noqa: E402
-from station.process.masks import (  # noqa: E402
-    MaskSettings, _border, _plate_matched, compute_mask, difference_mask, seed_from_cues,
-)
+from station.process.masks import MaskSettings, compute_mask, plate_matched, seed_mask  # noqa: E402
 from station.rig_geometry import RigGeometry  # noqa: E402
 
 SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
@@ -63,8 +61,7 @@ def developed(radiance: np.ndarray, seed: list[int]) -> np.ndarray:
 def grabcut_mask(shot: np.ndarray, plate: np.ndarray) -> np.ndarray:
     """OpenCV GrabCut from the box of our seed hull, grown by 10 % a side, on the 8-bit sRGB frame."""
     settings = MaskSettings()
-    matched = _plate_matched(shot, plate, _border(shot.shape[:2], settings.border_fraction))
-    seed = seed_from_cues(difference_mask(shot, matched, settings), settings)
+    seed = seed_mask(shot, plate_matched(shot, plate, settings), settings)
     h, w = seed.shape
     if not seed.any():
         return seed

@@ -187,7 +187,7 @@ def main() -> None:
     }
     atomic_write_json(args.out, result)
     svg = args.out.with_suffix(".svg")
-    atomic_write_bytes(svg, curve_svg(rows, f"held-out PSNR against time, {result['scan']}").encode())
+    atomic_write_bytes(svg, curve_svg(rows, f"held-out PSNR and SOS against time, {result['scan']}").encode())
 
     table = Table(title=f"NGS against its baselines ({preset} preset)")
     for column in ("method", "PSNR", "PSNR*", "SSIM", "SOS", "Gaussians", "scoring infill", "steps", "train s"):

@@ -39,6 +39,7 @@ from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.masks import developed  # noqa: E402
 from sim.dng import dng_bytes  # noqa: E402
 from sim.scene import World, render  # noqa: E402
 from sim.sensor import SensorModel  # noqa: E402
@@ -116,17 +117,11 @@ def mask_rows(sizes: list[tuple[int, int]], repeats: int) -> list[dict]:
     at 1280 px and the mask resized back, see MaskSettings.max_working_side)."""
     world = World(procedural_stone(3, look="speckled"), rig=RigGeometry().scaled(640, 480))
     shot, plate = (render(world, 45.0, 90.0, stone_present=p).radiance for p in (True, False))
-    sensor, rows = SensorModel(), []
+    rows = []
     for width, height in sizes:
-        developed = []
-        for noise_seed, radiance in enumerate((shot, plate)):  # each frame its own noise, as on a camera
-            big = cv2.resize(radiance, (width, height), interpolation=cv2.INTER_LINEAR)
-            rng = np.random.default_rng(noise_seed)
-            with tempfile.NamedTemporaryFile(suffix=".dng") as handle:
-                handle.write(dng_bytes(sensor.expose(big, EXPOSURE_S, 100, rng), sensor))
-                handle.flush()
-                developed.append(develop_raw(Path(handle.name), DevelopSettings()).linear)
-        seconds = _median_seconds(lambda: compute_mask(*developed), repeats)
+        frames = [developed(cv2.resize(radiance, (width, height), interpolation=cv2.INTER_LINEAR), [noise_seed])
+                  for noise_seed, radiance in enumerate((shot, plate))]  # each frame its own noise, as on a camera
+        seconds = _median_seconds(lambda: compute_mask(*frames), repeats)
         rows.append({"width": width, "height": height, "seconds": round(seconds, 3)})
     return rows
 

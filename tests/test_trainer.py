@@ -319,11 +319,12 @@ def test_trained_ngs_model_is_written_and_scored_end_to_end(tmp_path):
 
 def test_the_written_sh_degree_is_the_lowest_the_held_out_views_do_not_miss():
     flat = {0: 40.00, 1: 40.05, 2: 40.08, 3: 40.02}
-    assert sh_degree_choice(3, flat.__getitem__, tolerance_db=0.1)["kept"] == 0
+    assert sh_degree_choice(3, flat[3], flat.__getitem__, tolerance_db=0.1)["kept"] == 0
     glossy = {0: 36.0, 1: 39.0, 2: 39.95, 3: 40.0}
-    choice = sh_degree_choice(3, glossy.__getitem__, tolerance_db=0.1)
+    choice = sh_degree_choice(3, glossy[3], glossy.__getitem__, tolerance_db=0.1)
     assert choice["kept"] == 2 and choice["held_out_psnr"] == {"0": 36.0, "1": 39.0, "2": 39.95, "3": 40.0}
-    assert sh_degree_choice(1, lambda degree: float("nan"), tolerance_db=0.1)["kept"] == 1  # nothing held out
+    nothing_held_out = sh_degree_choice(1, float("nan"), lambda degree: pytest.fail("rendered"), tolerance_db=0.1)
+    assert nothing_held_out["kept"] == 1
     params = {"sh0": torch.zeros(5, 1, 3), "shN": torch.arange(5 * 15 * 3.0).reshape(5, 15, 3)}
     cut = cut_to_degree(params, 1)
     assert cut["shN"].shape == (5, 3, 3) and torch.equal(cut["shN"], params["shN"][:, :3])

@@ -63,9 +63,9 @@ class NGSPhases:
         return self.cfg.fg_on_surface and self.infill is not None and step >= self.freeze_step
 
     def means_lr_factor(self, step: int) -> float:
-        """Exponential decay to 1%, restarted at the freeze when the LR reset is on; held at 1% past the plan."""
+        """Exponential decay to 1%, restarted at the freeze when the LR reset is on."""
         start = self.freeze_step if (self.cfg.lr_reset and step >= self.freeze_step) else 0
-        return 0.01 ** ((min(step, self.total_steps) - start) / max(1, self.total_steps - start))
+        return 0.01 ** ((step - start) / max(1, self.total_steps - start))
 
     def step_pre(self, step: int, surface: dict[str, torch.Tensor], cameras: list[Camera]) -> None:
         """Build the infill at `build`, freeze the noise at `freeze`, recolour the noise."""

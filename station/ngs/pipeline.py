@@ -22,7 +22,10 @@ def write_model(trainer: Trainer, report: TrainReport) -> None:
     """model/surface.pt (colour cut to the SH degree the held-out views need), model/infill.pt (NGS) and
     model/train_metrics.json, each atomically."""
     model_dir = trainer.model_dir
-    sh_choice = sh_degree_choice(trainer.cfg.sh_degree, trainer.held_out_psnr, trainer.cfg.sh_tolerance_db)
+    # the run's last held-out evaluation is at its final step: no need to render the views again
+    trained_psnr = trainer.evals[-1]["psnr"] if trainer.evals else trainer.held_out_psnr()
+    sh_choice = sh_degree_choice(trainer.cfg.sh_degree, trained_psnr, trainer.held_out_psnr,
+                                 trainer.cfg.sh_tolerance_db)
     surface = {
         "params": cut_to_degree(trainer.model.state_dict(), sh_choice["kept"]),
         "sh_degree": sh_choice["kept"],

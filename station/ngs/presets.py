@@ -34,10 +34,10 @@ def fast_preset() -> TrainConfig:
     3,000 (30k Gaussians: 0.97 at twice the time). A scene whose held-out SOS is still below 0.95 and
     rising at 3,000 steps trains on, up to 3,000 steps more (stopping.py): the real stone mesh at
     256x192 still gained 0.02 SOS per 500 steps at +2,000 (0.924, 0.949). The budget follows the
-    stone's size on screen (DensifyConfig.per_object_pixel): 2.65 per pixel is the demo stone's 15k; the real stone mesh,
-    2.3x larger on screen, went from SOS 0.87 at 15k to 0.95 at 34k. Colour is trained to SH degree 1
-    (a softbox stone shows little view-dependent colour), and written at the lowest degree its held-out
-    views need (sh_degree.py).
+    stone's size on screen (DensifyConfig.per_object_pixel): 2.65 per pixel is the demo stone's 15k;
+    the real stone mesh, 2.3x larger on screen, went from SOS 0.87 at 15k to 0.95 at 34k. Colour is
+    trained to SH degree 1 (a softbox stone shows little view-dependent colour), and written at the
+    lowest degree its held-out views need (sh_degree.py).
     """
     return TrainConfig(
         steps=3_000,

@@ -8,6 +8,7 @@ trained one is written, and the figures go into train_metrics.json.
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import torch
@@ -15,14 +16,15 @@ import torch
 from station.ngs.gaussians import num_sh_bases
 
 
-def sh_degree_choice(trained_degree: int, held_out_psnr: Callable[[int], float], tolerance_db: float) -> dict:
-    """{"trained", "kept", "tolerance_db", "held_out_psnr": {degree: dB}}; kept is the trained degree
-    when there are no held-out views to judge by."""
-    psnr = {degree: held_out_psnr(degree) for degree in range(trained_degree + 1)}
-    best = psnr[trained_degree]
-    kept = trained_degree
-    if best == best:  # NaN: nothing held out
-        kept = min(d for d, value in psnr.items() if value >= best - tolerance_db)
+def sh_degree_choice(trained_degree: int, trained_psnr: float, held_out_psnr: Callable[[int], float],
+                     tolerance_db: float) -> dict:
+    """{"trained", "kept", "tolerance_db", "held_out_psnr": {degree: dB}}; `held_out_psnr` is asked only for
+    the degrees below the trained one. Kept is the trained degree when nothing is held out (NaN)."""
+    if math.isnan(trained_psnr):
+        psnr = {trained_degree: trained_psnr}
+    else:
+        psnr = {**{degree: held_out_psnr(degree) for degree in range(trained_degree)}, trained_degree: trained_psnr}
+    kept = min(d for d, value in psnr.items() if d == trained_degree or value >= trained_psnr - tolerance_db)
     return {"trained": trained_degree, "kept": kept, "tolerance_db": tolerance_db,
             "held_out_psnr": {str(d): round(value, 3) for d, value in psnr.items()}}
 

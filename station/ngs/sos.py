@@ -18,7 +18,7 @@ from skimage.metrics import structural_similarity
 
 from station.errors import BadInputError
 from station.ngs.dataset import View, load_scene
-from station.ngs.gaussians import Gaussians
+from station.ngs.gaussians import Gaussians, rgb_to_sh
 from station.ngs.infill import Camera, Infill, InfillConfig, build_infill
 from station.ngs.inria_ply import read_inria_ply
 from station.ngs.raster import rasterization
@@ -95,7 +95,7 @@ def evaluate(surface: Gaussians, infill: Infill, views: list[View], out_dir: Pat
         raise BadInputError("SOS needs an infill to hide, and this one is empty (the surface spans no volume "
                             "that survives pruning and erosion); retrain, or score with a coarser infill")
     noise_sh = torch.zeros(m, g["colors"].shape[1], 3)
-    noise_sh[:, 0] = (torch.tensor([0.0, 1.0, 0.0]) - 0.5) / 0.28209479177387814
+    noise_sh[:, 0] = rgb_to_sh(torch.tensor([0.0, 1.0, 0.0]))
     starred = _join(_flat(g, g["colors"]), _flat(noise, noise_sh))
     sos_scene = sos_colours(g, noise)
     rows = []

@@ -103,7 +103,6 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.cameras = [Camera(v.viewmat, v.K, v.width, v.height) for v in scene.train]
         self.step = 0
-        self.planned_steps = cfg.steps  # grows by eval_every per extension
         self.seconds = 0.0
         self.losses: list[dict] = []
         self.evals: list[dict] = []
@@ -121,12 +120,18 @@ class Trainer:
         }
         return {name: torch.optim.Adam([p], lr=lrs[name], eps=1e-15) for name, p in self.model.params.items()}
 
+    @property
+    def target_steps(self) -> int:
+        """The planned steps plus one block of eval_every for every extension decided so far."""
+        return self.cfg.steps + self.cfg.eval_every * sum(d["extend"] for d in self.extensions)
+
     def sh_degree_at(self, step: int) -> int:
         every = max(1, round(self.cfg.sh_degree_every * self.cfg.steps))
         return min(step // every, self.cfg.sh_degree)
 
     def means_lr_at(self, step: int) -> float:
-        factor = self.ngs.means_lr_factor(step) if self.ngs else 0.01 ** (min(step, self.cfg.steps) / self.cfg.steps)
+        step = min(step, self.cfg.steps)  # past the plan (an extension) the rate stays at its final 1%
+        factor = self.ngs.means_lr_factor(step) if self.ngs else 0.01 ** (step / self.cfg.steps)
         return self.cfg.lr_means * self.scene.scene_scale * factor
 
     def train_step(self, step: int) -> dict[str, float]:
@@ -174,11 +179,11 @@ class Trainer:
     def run(self, progress: Callable[[int, dict], None] | None = None) -> TrainReport:
         resumed_from = self.load_checkpoint()
         started = time.perf_counter() - self.seconds
-        while self.step < self.planned_steps:
+        while self.step < self.target_steps:
             terms = self.train_step(self.step)
             self.step += 1
             self.seconds = time.perf_counter() - started
-            last = self.step == self.planned_steps
+            last = self.step == self.target_steps
             if self.step % 100 == 0 or last:
                 self.losses.append({"step": self.step, "seconds": round(self.seconds, 2), **terms})
                 if progress:
@@ -201,11 +206,8 @@ class Trainer:
         )
 
     def _decide_extension(self) -> None:
-        decision = extension_decision(self.cfg.extend, self.evals, self.planned_steps - self.cfg.steps,
-                                      self.cfg.eval_every)
-        self.extensions.append(decision)
-        if decision["extend"]:
-            self.planned_steps += self.cfg.eval_every
+        self.extensions.append(extension_decision(self.cfg.extend, self.evals, self.target_steps - self.cfg.steps,
+                                                  self.cfg.eval_every))
 
     def held_out(self) -> dict[str, float | None]:
         """Held-out PSNR, and SOS against the training infill once NGS has built one (else None)."""
@@ -240,7 +242,6 @@ class Trainer:
         return {
             "config": asdict(self.cfg),
             "step": self.step,
-            "planned_steps": self.planned_steps,
             "seconds": self.seconds,
             "model": self.model.state_dict(),
             "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
@@ -274,7 +275,7 @@ class Trainer:
         if self.ngs:
             self.ngs.load_state_dict(state["ngs"])
         self.generator.set_state(state["generator"])
-        self.step, self.seconds, self.planned_steps = state["step"], state["seconds"], state["planned_steps"]
+        self.step, self.seconds = state["step"], state["seconds"]
         self.losses, self.evals = list(state["losses"]), list(state["evals"])
         self.extensions = list(state["extensions"])
         return self.step

@@ -118,8 +118,9 @@ def _border(shape: tuple[int, int], fraction: float) -> np.ndarray:
     return strip
 
 
-def _plate_matched(shot: np.ndarray, plate: np.ndarray, border: np.ndarray) -> np.ndarray:
+def plate_matched(shot: np.ndarray, plate: np.ndarray, settings: MaskSettings) -> np.ndarray:
     """The plate scaled to the shot's exposure by a robust per-channel gain on the frame border."""
+    border = _border(shot.shape[:2], settings.border_fraction)
     gain = np.median(shot[border] / np.maximum(plate[border], 1e-4), axis=0)  # [3]
     return plate * gain.astype(np.float32)
 
@@ -189,6 +190,11 @@ def seed_from_cues(sure: np.ndarray, settings: MaskSettings) -> np.ndarray:
             seed |= labels == i
     hull = cv2.convexHull(cv2.findNonZero(seed.astype(np.uint8)))
     return cv2.fillConvexPoly(np.zeros(seed.shape, np.uint8), hull, 1).astype(bool)
+
+
+def seed_mask(shot: np.ndarray, plate: np.ndarray, settings: MaskSettings) -> np.ndarray:
+    """The first guess [H, W] bool: the hull of the sure-stone cues. `plate` is matched to the shot."""
+    return seed_from_cues(difference_mask(shot, plate, settings), settings)
 
 
 def largest_component_filled(mask: np.ndarray) -> np.ndarray:
@@ -428,8 +434,8 @@ def compute_mask(
     if scale < 1.0:
         size = (max(1, round(w * scale)), max(1, round(h * scale)))
         shot, plate = (cv2.resize(image, size, interpolation=cv2.INTER_AREA) for image in (shot, plate))
-    plate = _plate_matched(shot, plate, _border(shot.shape[:2], settings.border_fraction))
-    seed = seed_from_cues(difference_mask(shot, plate, settings), settings)
+    plate = plate_matched(shot, plate, settings)
+    seed = seed_mask(shot, plate, settings)
     mask = largest_component_filled(refine_graph_cut(shot, plate, seed, settings))
     if scale < 1.0:
         mask = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR) >= 0.5
