@@ -9,7 +9,7 @@ SOS are sampled during training, so the JSON also holds speed against error for 
 the first (`--presets fast,paper`) add an NGS run each, for speed against error across presets.
 
     python bench/ngs.py [--scan SCAN] [--stone LOOK:SEED] [--size 256x192] [--presets fast[,paper]] [--first-sizes]
-                        [--ablations]
+                        [--ablations] [--seed N]
 
 Without --scan a 6x40 simulated scan is shot and processed first (a few minutes). Writes
 bench/results/ngs.json and, beside it, ngs.svg: held-out PSNR and SOS against training time per run.
@@ -145,6 +145,7 @@ def main() -> None:
     parser.add_argument("--first-sizes", action="store_true",
                         help="further presets keep the first preset's Gaussian budget and infill levels (at 256x192 the "
                              "paper preset grew 317k Gaussians by step 6,000 and a 692k-Gaussian infill: hours on 2 cores)")
+    parser.add_argument("--seed", type=int, default=0, help="training seed of every run (run-to-run spread)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
 
@@ -152,11 +153,11 @@ def main() -> None:
         work = Path(tmp)
         source = args.scan or shoot_and_process(work, args.stone, args.size)
         preset, *more_presets = args.presets.split(",")
-        runs = {method: make_config(method, preset) for method in ("3dgs", "alpha", "ngs")}
+        runs = {method: replace(make_config(method, preset), seed=args.seed) for method in ("3dgs", "alpha", "ngs")}
         if args.ablations:
             runs.update(ablations(runs["ngs"]))
         for name in more_presets:
-            cfg, label = make_config("ngs", name), f"ngs, {name} preset"
+            cfg, label = replace(make_config("ngs", name), seed=args.seed), f"ngs, {name} preset"
             if args.first_sizes:
                 first = runs["ngs"]
                 cfg = replace(cfg, densify=replace(cfg.densify, max_gaussians=first.densify.max_gaussians,
@@ -180,6 +181,7 @@ def main() -> None:
         "threads": os.cpu_count(),
         "scan": str(args.scan or f"simulated {args.stone or 'default stone'} at {args.size}, 6x40"),
         "presets": args.presets.split(","),
+        "seed": args.seed,
         "further_presets_on_first_sizes": args.first_sizes,
         "peer": "3dgs and 3dgs+alpha, same preset, same run, scored with the NGS infill",
         "methods": rows,

@@ -73,8 +73,8 @@ def test_nerfstudio_import_flips_opengl_poses_to_opencv_and_takes_masks_from_alp
     assert transforms.intrinsics.fx == pytest.approx(F) and transforms.intrinsics.width == W
     for frame, c2w in zip(transforms.frames, cams):
         np.testing.assert_allclose(frame.c2w, c2w, atol=1e-9)
-        mask = np.asarray(Image.open(scan.resolve_inside(frame.mask_path))) > 127
-        np.testing.assert_array_equal(mask, ball_rgba(c2w)[..., 3] > 127)
+        mask = np.asarray(Image.open(scan.resolve_inside(frame.mask_path)))
+        np.testing.assert_array_equal(mask, ball_rgba(c2w)[..., 3])  # the alpha channel as given: coverage
     raw = json.loads(scan.transforms_path.read_text())
     np.testing.assert_allclose(raw["frames"][0]["transform_matrix"], opencv_to_opengl(cams[0]), atol=1e-9)
 

@@ -10,7 +10,7 @@ import pytest
 
 from station.errors import BadInputError
 from station.process.images_io import read_exr, read_mask_png, read_png16
-from station.process.masks import MaskSettings, check_masks, compute_mask, shadow_field
+from station.process.masks import MaskSettings, check_masks, compute_mask, compute_matte, shadow_field
 from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, sha256_bytes
 
 
@@ -152,6 +152,28 @@ def test_edge_pixels_are_stone_where_the_stone_covers_at_least_half_of_them() ->
     edge_pixels = int(((coverage > 0) & (coverage < 1)).sum())
     assert (compute_mask(shot, plate) != truth).sum() <= 0.05 * edge_pixels
     assert (compute_mask(shot, plate, MaskSettings(matte_boundary=False)) != truth).sum() >= 0.25 * edge_pixels
+
+
+def test_the_matte_gives_edge_pixels_their_coverage_and_the_stone_its_own_colour_there() -> None:
+    # training matches the stone alone on black: at an edge pixel that is coverage x stone colour,
+    # while the shot also holds (1 - coverage) of the plate, which no multi-view model can fit
+    coverage = coverage_ellipse()
+    dark = np.array([0.08, 0.078, 0.074], dtype=np.float32)
+    shot = with_noise(coverage[..., None] * dark + (1 - coverage[..., None]) * backdrop())
+    plate = with_noise(backdrop() * 1.015, seed=1)
+    matte = compute_matte(shot, plate)
+    edge = (coverage > 0.05) & (coverage < 0.95)
+    assert np.median(np.abs(matte.alpha[edge] - coverage[edge])) <= 0.1
+    assert np.array_equal(matte.mask, compute_mask(shot, plate))
+    assert np.all(matte.alpha[matte.mask] >= 0.5) and np.all(matte.alpha[coverage == 0] <= 0.5)
+    assert np.all(matte.alpha[cv2.erode(matte.mask.astype(np.uint8), np.ones((3, 3))) > 0] == 1.0)
+    alone = matte.alpha[..., None] * matte.foreground  # what the splats should render on black
+    shot_masked = matte.mask[..., None] * shot  # what a 0/1 mask asked of them
+    truth = coverage[..., None] * dark
+    assert np.abs(alone - truth)[edge].mean() <= 0.6 * np.abs(shot_masked - truth)[edge].mean()
+    plate_pixels = matte.alpha == 0
+    assert plate_pixels.sum() > 0.8 * (coverage == 0).sum()
+    assert np.all(matte.foreground[plate_pixels] == shot[plate_pixels])  # left as shot
 
 
 @pytest.mark.xfail(

@@ -131,3 +131,25 @@ def test_truncated_and_garbage_plys_are_refused_with_the_file_named(tmp_path):
         read_inria_ply(tmp_path / "cut.ply")
     with pytest.raises(BadInputError, match="junk.ply: not a PLY"):
         read_inria_ply(tmp_path / "junk.ply")
+
+
+def test_a_coverage_mask_scores_a_render_of_the_object_alone_on_black_as_exact(scene):
+    # process writes masks as coverage and, on the edge pixels, the object's own colour (straight alpha);
+    # the metrics compare the render with image x coverage, so a perfect model loses nothing at the rim
+    views, infill = scene
+    model = sphere_model(0.99)
+    g = {k: v.detach() for k, v in model.activated().items()}
+    plate = torch.tensor([0.8, 0.8, 0.8])
+    straight, shot_like = [], []
+    for view in views:
+        with torch.no_grad():
+            rgb, alpha, _ = rasterization(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
+                                          view.viewmat[None], view.K[None], view.width, view.height, sh_degree=1)
+        coverage = alpha[0, ..., 0]
+        assert bool(((coverage > 0.05) & (coverage < 0.95)).any())  # the sphere has a soft rim to score
+        colour = torch.where(coverage[..., None] > 1e-4, rgb[0] / coverage.clamp_min(1e-4)[..., None], 0.0)
+        straight.append(View(view.name, colour.clamp(0, 1), coverage, view.viewmat, view.K))
+        photo = (rgb[0] + (1 - coverage[..., None]) * plate).clamp(0, 1)  # the rim mixed with the plate
+        shot_like.append(View(view.name, photo, (coverage > 0.5).float(), view.viewmat, view.K))
+    assert evaluate(model, infill, straight)["psnr"] > 40
+    assert evaluate(model, infill, shot_like)["psnr"] < evaluate(model, infill, straight)["psnr"] - 5

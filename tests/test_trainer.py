@@ -83,6 +83,15 @@ def test_dataset_turns_nerfstudio_poses_into_opencv_viewmats_and_holds_out_every
     assert scene.scene_scale == pytest.approx(1.1 * 6.0 * math.cos(math.radians(15)), rel=0.3)
 
 
+def test_a_downscaled_view_targets_the_downscaled_object_alone_on_black(scan):
+    # image x coverage is averaged, not image and mask apart: their product would darken the rim
+    full, half = load_scene(scan[0]), load_scene(scan[0], downscale=2)
+    for big, small in zip(full.test, half.test):
+        expected = cv2.resize(big.target.numpy(), (16, 16), interpolation=cv2.INTER_AREA)
+        np.testing.assert_allclose(small.target.numpy(), expected, atol=1e-5)
+        assert small.mask.shape == (16, 16) and bool(((small.mask > 0) & (small.mask < 1)).any())
+
+
 def test_paths_escaping_the_scan_folder_are_refused_naming_the_field(tmp_path):
     write_sphere_scan(tmp_path)
     meta = json.loads((tmp_path / "poses" / "transforms.json").read_text())

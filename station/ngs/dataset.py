@@ -26,13 +26,19 @@ MAX_PIXELS = 100_000_000
 
 @dataclass
 class View:
-    """One posed image. image [H,W,3] float in [0,1]; mask [H,W] in [0,1] or None."""
+    """One posed image. image [H,W,3] float in [0,1]; mask [H,W] in [0,1] or None: the object's coverage,
+    fractional on its edge, where the image holds the object's own colour (straight alpha)."""
 
     name: str
     image: torch.Tensor  # [H, W, 3]
     mask: torch.Tensor | None  # [H, W]
     viewmat: torch.Tensor  # [4, 4] world-to-camera, OpenCV
     K: torch.Tensor  # [3, 3]
+
+    @property
+    def target(self) -> torch.Tensor:
+        """What a render of the object alone on black should show [H,W,3]: the image times the mask's coverage."""
+        return self.image if self.mask is None else self.image * self.mask[..., None]
 
     @property
     def width(self) -> int:
@@ -86,6 +92,17 @@ def _resize(data: np.ndarray, factor: int) -> np.ndarray:
         return data
     height, width = data.shape[:2]
     return cv2.resize(data, (width // factor, height // factor), interpolation=cv2.INTER_AREA)
+
+
+def _downscaled(image: np.ndarray, mask: np.ndarray | None, factor: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Area-averaged image and mask. With a mask, the object's colour x coverage is averaged and divided
+    back, so the image stays the object's own colour where the coarser pixel is partly covered."""
+    if mask is None or factor == 1:
+        return _resize(image, factor), None if mask is None else _resize(mask, factor)
+    covered = _resize(mask, factor)
+    premultiplied = _resize(image * mask[..., None], factor)
+    straight = premultiplied / np.maximum(covered, 1e-4)[..., None]
+    return np.where(covered[..., None] > 1e-4, straight, _resize(image, factor)), covered
 
 
 def _number(frame: dict, meta: dict, key: str, source: Path) -> float:
@@ -153,7 +170,7 @@ def load_scene(scan_root: Path, downscale: int = 1, test_every: int = 8, seed: i
             mask = mask if mask.ndim == 2 else mask.mean(axis=2)
             if mask.shape != (height, width):
                 raise BadInputError(f"{where}: mask {mask_path} is {mask.shape}, expected {(height, width)}")
-            mask = _resize(mask, downscale)
+        image, mask = _downscaled(image, mask, downscale)
         K = np.array(
             [
                 [_number(frame, meta, "fl_x", source), 0.0, _number(frame, meta, "cx", source)],
@@ -167,7 +184,7 @@ def load_scene(scan_root: Path, downscale: int = 1, test_every: int = 8, seed: i
         views.append(
             View(
                 name=Path(frame["file_path"]).name,
-                image=torch.from_numpy(_resize(image, downscale)),
+                image=torch.from_numpy(image),
                 mask=None if mask is None else torch.from_numpy(mask),
                 viewmat=torch.from_numpy(np.linalg.inv(c2w_cv)).float(),
                 K=torch.from_numpy(K).float(),

@@ -42,7 +42,8 @@ def _render(g: dict[str, torch.Tensor], view: View, sh_degree: int | None, backe
 
 
 def _image_metrics(render: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
-    """PSNR and SSIM of render*mask against gt*mask, render already clamped to [0,1]."""
+    """PSNR and SSIM of render*mask against gt*mask, render already clamped to [0,1], gt the view's target
+    (with a 0/1 mask, ngs.md's rule; with coverage, both sides are the object alone on black, weighted)."""
     a, b = render * mask[..., None], gt * mask[..., None]
     mse = float(np.mean((a - b) ** 2))
     psnr = 10 * math.log10(1.0 / max(mse, 1e-12))
@@ -100,7 +101,7 @@ def evaluate(surface: Gaussians, infill: Infill, views: list[View], out_dir: Pat
     sos_scene = sos_colours(g, noise)
     rows = []
     for view in views:
-        gt = view.image.numpy()
+        gt = view.target.numpy()
         render, _ = _render(_flat(g, g["colors"]), view, sh_degree, backend)
         transmittance, green, mask = view_transmittance(sos_scene, view, backend)
         mask_source = "mask" if view.mask is not None else "rendered alpha"

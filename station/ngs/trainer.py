@@ -219,8 +219,8 @@ class Trainer:
         return {"psnr": self.held_out_psnr(), "sos": sos}
 
     def held_out_psnr(self, sh_degree: int | None = None) -> float:
-        """Mean PSNR of the surface on the held-out views (render clamped, both sides masked), its colour
-        cut to `sh_degree` (default: the trained degree)."""
+        """Mean PSNR of the surface on the held-out views (render clamped, against the view's target, both
+        weighted by the mask), its colour cut to `sh_degree` (default: the trained degree)."""
         if not self.scene.test:
             return float("nan")
         g = {k: v.detach() for k, v in self.model.activated().items()}
@@ -233,7 +233,7 @@ class Trainer:
                     sh_degree=self.cfg.sh_degree if sh_degree is None else sh_degree, backend=self.cfg.backend,
                 )
             mask = view.mask[..., None] if view.mask is not None else torch.ones(1)
-            mse = float(((colors[0].clamp(0, 1) - view.image) * mask).square().mean())
+            mse = float(((colors[0].clamp(0, 1) - view.target) * mask).square().mean())
             values.append(10 * math.log10(1 / max(mse, 1e-12)))
         return sum(values) / len(values)
 

@@ -2,8 +2,11 @@
 
 Reads manifest.jsonl, takes one white balance for the scan from its neutral plates, scales
 every frame to a common exposure, optionally corrects colour against a chart seen in a plate,
-and writes images/<stem>.png (16-bit sRGB), images_linear/<stem>.exr (half linear) and
-masks/<stem>.png for every shot. Frames that cannot be used are not fatal: each frame's
+and writes images/<stem>.png (16-bit sRGB), images_linear/<stem>.exr (half linear, the shot as
+developed) and masks/<stem>.png for every shot. The mask holds the stone's coverage (255 inside,
+fractions on its edge), and images/ hold the stone's own colour on those edge pixels, unmixed
+from the plate (masks.Matte): an image times its mask is the stone alone on black, the form
+training matches. Frames that cannot be used are not fatal: each frame's
 report carries its flags (unreadable, black, saturated, clipped highlights, implausible
 mask), so an unattended run finishes and says exactly which views are suspect.
 """
@@ -21,7 +24,7 @@ from station.errors import BadInputError, ScanFolderError
 from station.process.colour import ChartNotFoundError, locate_and_fit_chart, white_balance_from_linear
 from station.process.develop import Developed, DevelopSettings, WhiteBalance, develop_raw
 from station.process.images_io import write_exr_half, write_mask_png, write_png16
-from station.process.masks import MaskCheckSettings, MaskSettings, check_masks, compute_mask
+from station.process.masks import MaskCheckSettings, MaskSettings, check_masks, compute_matte
 from station.scanfolder import ManifestEntry, ScanFolder
 
 
@@ -151,10 +154,11 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
             linear = np.clip(linear @ correction.T, 0.0, None)
             plate_linear = np.clip(plate_linear @ correction.T, 0.0, None)
         stem = Path(entry.file).stem
-        write_png16(scan.images_dir / f"{stem}.png", linear)
+        matte = compute_matte(linear, plate_linear, settings.masks)
+        mask = matte.mask
+        write_png16(scan.images_dir / f"{stem}.png", matte.foreground)
         write_exr_half(scan.images_linear_dir / f"{stem}.exr", linear)
-        mask = compute_mask(linear, plate_linear, settings.masks)
-        write_mask_png(scan.masks_dir / f"{stem}.png", mask)
+        write_mask_png(scan.masks_dir / f"{stem}.png", matte.alpha)
         report.mask_area_fraction = float(mask.mean())
         rings.setdefault(entry.elevation_deg, []).append((entry.azimuth_deg, entry.file, mask))
 

@@ -58,10 +58,11 @@ def read_png16(path: Path) -> np.ndarray:
 
 
 def write_mask_png(path: Path, mask: np.ndarray) -> None:
-    """Masks are 8-bit 0/255 single-channel PNGs, the form nerfstudio and COLMAP read."""
+    """Masks are 8-bit single-channel PNGs, the form nerfstudio and COLMAP read: 255 is stone, 0 is not,
+    and a value between is a coverage (`bool` masks, and readers that threshold at 128, see 0/255)."""
     if mask.ndim != 2:
         raise BadInputError(f"{path}: expected an [H, W] mask, got shape {mask.shape}")
-    data = np.where(mask, 255, 0).astype(np.uint8)
+    data = np.rint(np.clip(mask.astype(np.float32), 0.0, 1.0) * 255).astype(np.uint8)
 
     def writer(tmp: Path) -> None:
         if not cv2.imwrite(str(tmp), data):

@@ -264,21 +264,22 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
                                     f"{data.intrinsics.width}x{data.intrinsics.height}")
             rgba = img.convert("RGBA") if img.mode in ("RGBA", "LA", "PA") else None
             rgb = np.asarray(img.convert("RGB"))  # [H, W, 3]
-        mask = None
+        # kept as given: 255 is object, a value between is its coverage (an alpha channel is straight alpha,
+        # so the RGB already holds the object's own colour there, the form our masks and images take too)
+        coverage = None
         if frame.mask is not None:
             with Image.open(frame.mask) as m:
-                mask = np.asarray(m.convert("L")) > 127
+                coverage = np.asarray(m.convert("L"))
             mask_kind = "files"
         elif rgba is not None:
-            mask = np.asarray(rgba)[:, :, 3] > 127
+            coverage = np.asarray(rgba)[:, :, 3]
             mask_kind = "alpha"
         atomic_write_with(scan.images_dir / name, lambda tmp, a=rgb: Image.fromarray(a).save(tmp, format="PNG"))
-        if mask is not None:
-            atomic_write_with(scan.masks_dir / name,
-                              lambda tmp, m=mask: Image.fromarray(m.astype(np.uint8) * 255).save(tmp, format="PNG"))
-            masks.append(mask)
+        if coverage is not None:
+            atomic_write_with(scan.masks_dir / name, lambda tmp, m=coverage: Image.fromarray(m).save(tmp, format="PNG"))
+            masks.append(coverage > 127)
         images.append(rgb)
-        frames.append(PosedFrame(f"images/{name}", convert(frame.c2w), f"masks/{name}" if mask is not None else None))
+        frames.append(PosedFrame(f"images/{name}", convert(frame.c2w), f"masks/{name}" if coverage is not None else None))
     if 0 < len(masks) < len(frames):
         raise BadInputError(f"{src}: {len(masks)} of {len(frames)} frames have a mask; all or none are needed")
 
