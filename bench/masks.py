@@ -20,7 +20,6 @@ Prints a table and writes bench/results/masks.json.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -42,6 +41,7 @@ from station.capture.plan import default_elevations  # noqa: E402
 from station.process.develop import DevelopSettings, develop_raw  # noqa: E402
 from station.process.masks import MaskSettings, compute_mask, plate_matched, seed_mask  # noqa: E402
 from station.rig_geometry import RigGeometry  # noqa: E402
+from station.scanfolder import atomic_write_json  # noqa: E402
 
 SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
 EXPOSURE_S = 1 / 30
@@ -162,8 +162,7 @@ def main() -> None:
                              "ours_over_grabcut": round(float(ours / peer), 3)},
         "summary": table_rows, "rows": rows,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=1))
+    atomic_write_json(args.out, record)
     print(f"ours {ours:.3f} s/mask, GrabCut {peer:.3f} s/mask (ratio {ours / peer:.2f}); wrote {args.out}")
 
 

@@ -35,7 +35,7 @@ def ring_cameras(count: int = 12, distance: float = 2.0, elevation_deg: float = 
 
 
 def ball_rgba(c2w: np.ndarray) -> np.ndarray:
-    """RGBA [H, W, 4] of a ball: alpha is its silhouette."""
+    """RGBA [H, W, 4] of a ball: alpha is its silhouette, its edge pixels partly covered (200)."""
     u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
     d = np.stack([(u - K[0, 2]) / F, (v - K[1, 2]) / F, np.ones_like(u)], -1) @ c2w[:3, :3].T
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
@@ -45,6 +45,9 @@ def ball_rgba(c2w: np.ndarray) -> np.ndarray:
     rgba = np.zeros((H, W, 4), np.uint8)
     rgba[..., :3] = 40
     rgba[hit] = (200, 150, 90, 255)
+    inner = hit.copy()
+    inner[1:-1, 1:-1] = hit[1:-1, 1:-1] & hit[:-2, 1:-1] & hit[2:, 1:-1] & hit[1:-1, :-2] & hit[1:-1, 2:]
+    rgba[hit & ~inner, 3] = 200
     return rgba
 
 

@@ -1,7 +1,7 @@
 """Training losses: 0.8 L1 + 0.2 D-SSIM on the mask's crop, and the alpha losses.
 
-The image term looks only at the mask's bounding box (GT times mask, black background) so the
-empty turntable surround does not dilute the gradient. The alpha terms are what stop false
+The image term looks only at the mask's bounding box (the view's target: image times coverage, on
+black) so the empty turntable surround does not dilute the gradient. The alpha terms are what stop false
 transparency without NGS: L_bg pushes alpha to 0 off the object, L_fg pushes it to 1 on the
 object's eroded interior (eroded so that soft mask edges are not forced opaque).
 """
@@ -70,14 +70,13 @@ def erode_mask(mask: torch.Tensor) -> torch.Tensor:
     return -F.max_pool2d(-mask[None, None], kernel_size=3, stride=1, padding=1)[0, 0]
 
 
-def image_loss(render: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None, cfg: LossConfig) -> torch.Tensor:
-    """0.8 L1 + 0.2 (1 - SSIM) on the mask's bounding box; GT is masked, background black."""
+def image_loss(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None, cfg: LossConfig) -> torch.Tensor:
+    """0.8 L1 + 0.2 (1 - SSIM) on the mask's bounding box; `target` is the object alone on black (View.target)."""
     if mask is not None:
-        gt = gt * mask[..., None]
         rows, cols = mask_bbox(mask, cfg.crop_threshold)
-        render, gt = render[rows, cols], gt[rows, cols]
-    l1 = (render - gt).abs().mean()
-    return (1 - cfg.ssim_lambda) * l1 + cfg.ssim_lambda * (1 - ssim(render, gt))
+        render, target = render[rows, cols], target[rows, cols]
+    l1 = (render - target).abs().mean()
+    return (1 - cfg.ssim_lambda) * l1 + cfg.ssim_lambda * (1 - ssim(render, target))
 
 
 def alpha_losses(alpha: torch.Tensor, mask: torch.Tensor, cfg: LossConfig,
@@ -95,13 +94,13 @@ def alpha_losses(alpha: torch.Tensor, mask: torch.Tensor, cfg: LossConfig,
 
 
 def total_loss(
-    render: torch.Tensor, alpha: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None, cfg: LossConfig,
+    render: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None, cfg: LossConfig,
     fg_alpha: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """render/gt [H,W,3], alpha [H,W], mask [H,W] or None (then only the image term).
+    """render/target [H,W,3], alpha [H,W], mask [H,W] or None (then only the image term).
 
     fg_alpha: the alpha L_fg judges when it is not the rendered one (NGS: the surface's own share)."""
-    terms = {"image": image_loss(render, gt, mask, cfg)}
+    terms = {"image": image_loss(render, target, mask, cfg)}
     if mask is not None:
         terms.update(alpha_losses(alpha, mask, cfg, fg_alpha))
     loss = torch.stack(list(terms.values())).sum()

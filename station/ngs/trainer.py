@@ -162,7 +162,7 @@ class Trainer:
             self.strategy.step_pre_backward(meta)
         alpha = alphas[0, ..., 0]
         surface_alpha = alpha - colors[0, ..., 3] if surface_fg else None
-        loss, terms = total_loss(colors[0, ..., :3], alpha, view.image, view.mask, self.cfg.loss, surface_alpha)
+        loss, terms = total_loss(colors[0, ..., :3], alpha, view.target, view.mask, self.cfg.loss, surface_alpha)
         check_finite(step, {"loss": loss})
         if loss.requires_grad:  # False only when the surface is frozen and no noise survived
             loss.backward()

@@ -437,9 +437,13 @@ class Matte:
     mesh's held-out error at 256x192, and no model consistent across views can fit it.
     """
 
-    mask: np.ndarray  # [H, W] bool: the stone covers at least half of the pixel
-    alpha: np.ndarray  # [H, W] float32 in [0, 1]: the stone's coverage, fractional only next to the mask's edge
+    alpha: np.ndarray  # [H, W] float32 in [0, 1]: the stone's coverage, fractional only on the mask's edge
     foreground: np.ndarray  # [H, W, 3] float32 linear: the stone's colour, unmixed from the background where 0 < alpha < 1, else the shot
+
+    @property
+    def mask(self) -> np.ndarray:
+        """[H, W] bool: the stone covers at least half of the pixel (one component, holes filled)."""
+        return self.alpha >= 0.5
 
 
 def compute_matte(
@@ -464,12 +468,13 @@ def compute_matte(
                                 for image in (coverage, background))
     mask = largest_component_filled(coverage >= 0.5)
     ring = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~mask
-    # filled holes are stone; partial coverage counts only on the edge of the kept component
+    # filled holes are stone; partial coverage counts only on the edge of the kept component, where it is
+    # below one half (a ring pixel covered more would have joined the component): so mask == alpha >= 0.5
     alpha = np.where(mask, np.where(coverage >= 0.5, coverage, 1.0), np.where(ring, coverage, 0.0)).astype(np.float32)
     partial = (alpha > 0.0) & (alpha < 1.0)
     unmixed = (full_shot - (1.0 - alpha[..., None]) * background) / np.maximum(alpha, 1e-6)[..., None]
     foreground = np.where(partial[..., None], np.maximum(unmixed, 0.0), full_shot).astype(np.float32)
-    return Matte(mask=mask, alpha=alpha, foreground=foreground)
+    return Matte(alpha=alpha, foreground=foreground)
 
 
 def compute_mask(
