@@ -7,9 +7,11 @@ ablations of NGS (no erosion, no pruning, no L_f, no LR reset, no colour reset) 
 rendered alpha after the freeze, as the reference does, instead of the surface's own). Held-out PSNR and
 SOS are sampled during training, so the JSON also holds speed against error for every run. Presets after
 the first (`--presets fast,paper`) add an NGS run each, for speed against error across presets.
+`--full-resolution-peer` adds the NGS run trained at full resolution from the first step, the peer
+of the preset's coarse start (resolution.py).
 
     python bench/ngs.py [--scan SCAN] [--stone LOOK:SEED] [--size 256x192] [--presets fast[,paper]] [--first-sizes]
-                        [--ablations] [--seed N]
+                        [--ablations] [--full-resolution-peer] [--seed N]
 
 Without --scan a 6x40 simulated scan is shot and processed first (a few minutes). Writes
 bench/results/ngs.json and, beside it, ngs.svg: held-out PSNR and SOS against training time per run.
@@ -36,6 +38,7 @@ from station.ngs.dataset import load_scene
 from station.ngs.infill import Infill
 from station.ngs.pipeline import write_model
 from station.ngs.presets import make_config
+from station.ngs.resolution import ResolutionConfig
 from station.ngs.sos import evaluate, load_surface
 from station.ngs.trainer import TrainConfig, Trainer
 from station.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_json
@@ -87,7 +90,7 @@ def score(run: Path, infill: Infill) -> dict:
     train = scan.read_json(scan.model_dir / "train_metrics.json")
     return {**metrics, "steps": train["report"]["steps"], "planned_steps": train["planned_steps"],
             "extensions": train["extensions"], "train_seconds": train["report"]["seconds"],
-            "held_out_curve": train["held_out"]}
+            "held_out_curve": train["held_out"], "resolution": train["resolution"]}
 
 
 COLOURS = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"]
@@ -145,6 +148,8 @@ def main() -> None:
     parser.add_argument("--first-sizes", action="store_true",
                         help="further presets keep the first preset's Gaussian budget and infill levels (at 256x192 the "
                              "paper preset grew 317k Gaussians by step 6,000 and a 692k-Gaussian infill: hours on 2 cores)")
+    parser.add_argument("--full-resolution-peer", action="store_true",
+                        help="add NGS trained at full resolution throughout, the peer of the preset's coarse start")
     parser.add_argument("--seed", type=int, default=0, help="training seed of every run (run-to-run spread)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -156,6 +161,8 @@ def main() -> None:
         runs = {method: replace(make_config(method, preset), seed=args.seed) for method in ("3dgs", "alpha", "ngs")}
         if args.ablations:
             runs.update(ablations(runs["ngs"]))
+        if args.full_resolution_peer:
+            runs["ngs: full resolution throughout"] = replace(runs["ngs"], resolution=ResolutionConfig())
         for name in more_presets:
             cfg, label = replace(make_config("ngs", name), seed=args.seed), f"ngs, {name} preset"
             if args.first_sizes:
@@ -187,6 +194,15 @@ def main() -> None:
         "methods": rows,
         "ngs_psnr_gap_to_best_db": round(best_psnr - rows["ngs"]["psnr"], 3),
     }
+    peer = rows.get("ngs: full resolution throughout")
+    if peer:
+        result["coarse_start_against_full_resolution"] = {
+            "time_ratio": round(rows["ngs"]["train_seconds"] / peer["train_seconds"], 3),
+            "seconds_per_step_ratio": round((rows["ngs"]["train_seconds"] / rows["ngs"]["steps"])
+                                            / (peer["train_seconds"] / peer["steps"]), 3),
+            "psnr_delta_db": round(rows["ngs"]["psnr"] - peer["psnr"], 3),
+            "sos_delta": round(rows["ngs"]["sos"] - peer["sos"], 4),
+        }
     atomic_write_json(args.out, result)
     svg = args.out.with_suffix(".svg")
     atomic_write_bytes(svg, curve_svg(rows, f"held-out PSNR and SOS against time, {result['scan']}").encode())
@@ -198,6 +214,8 @@ def main() -> None:
         table.add_row(name, f"{r['psnr']:.2f}", f"{r['psnr_star']:.2f}", f"{r['ssim']:.4f}", f"{r['sos']:.3f}",
                       str(r["num_gaussians"]), str(r["num_infill"]), str(r["steps"]), f"{r['train_seconds']:.0f}")
     Console().print(table)
+    if peer:
+        print(f"coarse start against full resolution throughout: {result['coarse_start_against_full_resolution']}")
     print(f"wrote {args.out} and {svg}")
 
 

@@ -91,6 +91,11 @@ def test_training_curves_are_inline_polylines_and_absent_held_out_error_is_expla
     sh = {"trained": 1, "kept": 0, "tolerance_db": 0.1, "held_out_psnr": {"0": 41.2, "1": 41.25}}
     with_sh = report(GOOD, {"losses": losses, "sh_degree": sh})
     assert "written at degree 0" in with_sh and "41.20 dB at degree 0, 41.25 dB at degree 1" in with_sh
+    resolution = {"start_downscale": 2, "final_downscale": 1, "checks": [
+        {"step": 100, "downscale": 2, "psnr": 32.5, "move_up": False, "reason": "first check at this level"},
+        {"step": 200, "downscale": 2, "psnr": 31.9, "move_up": True, "reason": "gained -0.60 dB"}]}
+    with_resolution = report(GOOD, {"losses": losses, "resolution": resolution})
+    assert "trained at 1/2 until step 200 (gained -0.60 dB), then at full resolution" in with_resolution
 
 
 def test_a_curve_maps_its_extremes_to_the_plot_edges_and_skips_non_numbers():

@@ -12,13 +12,14 @@ import pytest
 import torch
 
 from station.errors import BadInputError, TrainingError
-from station.ngs.dataset import OPENGL_TO_OPENCV, load_scene
+from station.ngs.dataset import OPENGL_TO_OPENCV, downscaled_view, load_scene
 from station.ngs.gaussians import Gaussians, rgb_to_sh
 from station.ngs.infill import InfillConfig
 from station.ngs.losses import LossConfig, alpha_losses
 from station.ngs.ngs_schedule import NGSConfig
 from station.ngs.pipeline import write_model
 from station.ngs.raster import rasterization
+from station.ngs.resolution import ResolutionConfig, resolution_decision
 from station.ngs.presets import make_config
 from station.ngs.sos import evaluate_scan, score_splat
 from station.ngs.sh_degree import cut_to_degree, sh_degree_choice
@@ -163,6 +164,15 @@ def test_loss_terms_vanish_for_a_perfect_alpha_and_switch_off_by_weight():
     assert {k: float(v) for k, v in alpha_losses(mask, mask, LossConfig()).items()} == {"bg": 0.0, "fg": 0.0}
     assert float(alpha_losses(torch.zeros(16, 16), mask, LossConfig())["fg"]) == 1.0
     assert set(alpha_losses(mask, mask, LossConfig(fg_weight=0.0))) == {"bg"}
+    binary = torch.rand(16, 16)  # with a 0/1 mask L_bg is ngs.md's sum a(1-M) / sum(1-M)
+    expected = (binary * (1 - mask)).sum() / (1 - mask).sum()
+    torch.testing.assert_close(alpha_losses(binary, mask, LossConfig())["bg"], expected)
+    rim = mask.clone()
+    rim[3, 4:12] = 0.4  # an edge row the stone covers by 40 %
+    assert float(alpha_losses(rim, rim, LossConfig())["bg"]) == 0.0  # alpha = coverage is right there
+    opaque_rim = rim.clone()
+    opaque_rim[3, 4:12] = 1.0  # only its 0.6 beyond the coverage is stray, weighted by the 0.6 not covered
+    torch.testing.assert_close(alpha_losses(opaque_rim, rim, LossConfig())["bg"], 8 * 0.6 * 0.6 / (1 - rim).sum())
 
 
 def test_ngs_phases_freeze_the_surface_then_the_noise_and_recolour_every_step(scan, tmp_path):
@@ -266,29 +276,84 @@ def test_the_extension_decision_reads_the_last_two_evaluations():
     assert extension_decision(ExtendConfig(), evals, 0, 500)["reason"] == "extension off"
 
 
-def test_a_run_killed_during_its_extension_resumes_to_the_same_end(scan, tmp_path):
-    scene = load_scene(scan[0])
-    cfg = replace(TINY, eval_every=10, checkpoint_every=10,
-                  extend=ExtendConfig(max_extra_steps=20, sos_target=1.01, min_sos_gain=-1.0))
-    whole = Trainer(scene, cfg, tmp_path / "whole")
+def killed_and_resumed(scene, cfg: TrainConfig, root, kill_at: int):
+    """An uninterrupted run, and a run interrupted before step `kill_at` then resumed: (whole, resumed, report)."""
+    whole = Trainer(scene, cfg, root / "whole")
     whole.run()
-    killed = Trainer(scene, cfg, tmp_path / "killed")
+    killed = Trainer(scene, cfg, root / "killed")
     train_step = killed.train_step
 
     def dying(step: int) -> dict:
-        if step == TINY.steps + 15:
+        if step == kill_at:
             raise KeyboardInterrupt
         return train_step(step)
 
     killed.train_step = dying
     with pytest.raises(KeyboardInterrupt):
         killed.run()
-    resumed = Trainer(scene, cfg, tmp_path / "killed")
+    resumed = Trainer(scene, cfg, root / "killed")
     report = resumed.run()
-    assert report.resumed_from == TINY.steps + 10 and report.steps == whole.step
-    assert resumed.extensions == whole.extensions
     for name, value in whole.model.params.items():
         torch.testing.assert_close(resumed.model.params[name], value)
+    return whole, resumed, report
+
+
+def test_a_run_killed_during_its_extension_resumes_to_the_same_end(scan, tmp_path):
+    cfg = replace(TINY, eval_every=10, checkpoint_every=10,
+                  extend=ExtendConfig(max_extra_steps=20, sos_target=1.01, min_sos_gain=-1.0))
+    whole, resumed, report = killed_and_resumed(load_scene(scan[0]), cfg, tmp_path, kill_at=TINY.steps + 15)
+    assert report.resumed_from == TINY.steps + 10 and report.steps == whole.step
+    assert resumed.extensions == whole.extensions
+
+
+def test_training_moves_up_a_level_once_the_coarse_level_stops_raising_full_resolution_psnr():
+    cfg = ResolutionConfig(start_downscale=2)
+    rising = [{"step": 100, "downscale": 2, "psnr": 30.0}, {"step": 200, "downscale": 2, "psnr": 30.5}]
+    assert not resolution_decision(cfg, rising, 200, 300)["move_up"]
+    assert resolution_decision(cfg, [rising[0], {**rising[1], "psnr": 30.05}], 200, 300)["move_up"]
+    assert resolution_decision(cfg, [rising[0], {**rising[1], "psnr": 29.0}], 200, 300)["move_up"]  # it hurts
+    assert not resolution_decision(cfg, rising[:1], 100, 300)["move_up"]  # nothing to compare with yet
+    assert resolution_decision(cfg, rising, 300, 300)["move_up"]  # the longest a level may last
+    assert resolution_decision(cfg, [{**rising[0], "psnr": float("nan")}], 100, 300)["move_up"]  # nothing held out
+    with pytest.raises(BadInputError, match="power of two"):
+        ResolutionConfig(start_downscale=3)
+
+
+COARSE_START = replace(TINY, eval_every=30, resolution=ResolutionConfig(
+    start_downscale=2, check_every=10 / TINY.steps, max_level_steps=30 / TINY.steps, min_psnr_gain_db=-1e9))
+
+
+def test_a_coarse_start_trains_on_downscaled_views_and_ends_at_full_resolution(scan, tmp_path):
+    scene, half = load_scene(scan[0]), load_scene(scan[0], downscale=2)
+    for view, expected in zip([downscaled_view(v, 2) for v in scene.train], half.train):
+        torch.testing.assert_close(view.image, expected.image, rtol=0, atol=0)
+        torch.testing.assert_close(view.mask, expected.mask, rtol=0, atol=0)
+        torch.testing.assert_close(view.K, expected.K, rtol=0, atol=0)
+    trainer = Trainer(scene, COARSE_START, tmp_path)
+    seen = []
+    train_step = trainer.train_step
+    trainer.train_step = lambda step: seen.append(trainer.train_views()[0].width) or train_step(step)
+    report = trainer.run()
+    assert seen == [16] * 30 + [32] * 30  # never gaining below -1e9 dB, it moves up at the 30-step limit
+    assert [(c["step"], c["downscale"], c["move_up"]) for c in trainer.resolution_checks] == [
+        (10, 2, False), (20, 2, False), (30, 2, True)]
+    assert all(c["psnr"] > 0 for c in trainer.resolution_checks)  # scored on the full-resolution held-out views
+    write_model(trainer, report)
+    written = json.loads((tmp_path / "train_metrics.json").read_text())["resolution"]
+    assert written["start_downscale"] == 2 and written["final_downscale"] == 1 and len(written["checks"]) == 3
+    plateau = replace(COARSE_START, resolution=replace(COARSE_START.resolution, min_psnr_gain_db=1e9))
+    trainer = Trainer(scene, plateau, tmp_path / "plateau")
+    trainer.run()
+    assert [(c["step"], c["move_up"]) for c in trainer.resolution_checks] == [(10, False), (20, True)]
+    assert "stopped paying" in trainer.resolution_checks[-1]["reason"]
+
+
+@pytest.mark.parametrize("kill_at", [25, 45], ids=["while coarse", "after moving up"])
+def test_a_run_killed_around_a_resolution_change_resumes_to_the_same_end(scan, tmp_path, kill_at):
+    cfg = replace(COARSE_START, checkpoint_every=10)
+    whole, resumed, report = killed_and_resumed(load_scene(scan[0]), cfg, tmp_path, kill_at=kill_at)
+    assert report.resumed_from == kill_at // 10 * 10 and resumed.level_downscale == 1
+    assert resumed.resolution_checks == whole.resolution_checks
 
 
 def test_a_checkpoint_from_another_configuration_is_refused(scan, tmp_path):

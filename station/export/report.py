@@ -270,6 +270,12 @@ def _curves(train: dict) -> str:
         parts.append(f"<p>View-dependent colour: trained to SH degree {sh.get('trained')}, written at degree "
                      f"{sh.get('kept')}, the lowest within {sh.get('tolerance_db')} dB of the trained degree's "
                      f"held-out PSNR ({by_degree}).</p>")
+    resolution = train.get("resolution")
+    moves = [c for c in (resolution or {}).get("checks", []) if c.get("move_up")]
+    if moves:
+        steps = ", ".join(f"1/{c.get('downscale')} until step {c.get('step')} ({html.escape(c.get('reason', ''))})"
+                          for c in moves)
+        parts.append(f"<p>Resolution: trained at {steps}, then at full resolution.</p>")
     return "".join(parts)
 
 

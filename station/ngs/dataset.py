@@ -105,6 +105,16 @@ def _downscaled(image: np.ndarray, mask: np.ndarray | None, factor: int) -> tupl
     return np.where(covered[..., None] > 1e-4, straight, _resize(image, factor)), covered
 
 
+def downscaled_view(view: View, factor: int) -> View:
+    """The same view `factor` times coarser, filtered as load_scene's downscale is (the trainer's coarse levels)."""
+    if factor == 1:
+        return view
+    image, mask = _downscaled(view.image.numpy(), None if view.mask is None else view.mask.numpy(), factor)
+    K = view.K.clone()
+    K[:2] /= factor
+    return View(view.name, torch.from_numpy(image), None if mask is None else torch.from_numpy(mask), view.viewmat, K)
+
+
 def _number(frame: dict, meta: dict, key: str, source: Path) -> float:
     value = frame.get(key, meta.get(key))
     if not isinstance(value, (int, float)) or not math.isfinite(value):

@@ -81,11 +81,16 @@ def image_loss(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | 
 
 def alpha_losses(alpha: torch.Tensor, mask: torch.Tensor, cfg: LossConfig,
                  fg_alpha: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """L_bg = sum a(1-M)/sum(1-M); L_fg = sum (1-a')M_e/sum M_e, a' = fg_alpha or alpha. All [H,W]."""
+    """L_bg = sum max(a-M,0)(1-M)/sum(1-M); L_fg = sum (1-a')M_e/sum M_e, a' = fg_alpha or alpha. All [H,W].
+
+    M is the stone's coverage, fractional on its edge pixels, where the right alpha is M itself: L_bg
+    charges only the alpha beyond it, so it does not pull the rim below its coverage (with a 0/1 mask
+    this is ngs.md's sum a(1-M)/sum(1-M) exactly)."""
     terms: dict[str, torch.Tensor] = {}
     if cfg.bg_weight > 0:
         background = 1 - mask
-        terms["bg"] = cfg.bg_weight * (alpha * background).sum() / background.sum().clamp_min(1e-6)
+        stray = (alpha - mask).clamp_min(0)
+        terms["bg"] = cfg.bg_weight * (stray * background).sum() / background.sum().clamp_min(1e-6)
     if cfg.fg_weight > 0:
         interior = erode_mask(mask)
         seen = alpha if fg_alpha is None else fg_alpha

@@ -49,6 +49,8 @@ def write_model(trainer: Trainer, report: TrainReport) -> None:
         "extensions": trainer.extensions,
         "sh_degree": sh_choice,
         "gaussian_budget": trainer.gaussian_budget,
+        "resolution": {"start_downscale": trainer.cfg.resolution.start_downscale, "final_downscale": trainer.level_downscale,
+                       "checks": trainer.resolution_checks},
         "densify": trainer.strategy.state.history,
         "ngs": trainer.ngs.history if trainer.ngs else [],
     }

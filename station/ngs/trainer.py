@@ -17,12 +17,13 @@ from typing import Callable, Literal
 import torch
 
 from station.errors import TrainingError
-from station.ngs.dataset import SceneData
+from station.ngs.dataset import SceneData, View, downscaled_view
 from station.ngs.gaussians import Gaussians, num_sh_bases
 from station.ngs.infill import Camera
 from station.ngs.losses import LossConfig, total_loss
 from station.ngs.ngs_schedule import NGSConfig, NGSPhases
 from station.ngs.raster import rasterization
+from station.ngs.resolution import ResolutionConfig, resolution_decision
 from station.ngs.sos import held_out_sos
 from station.ngs.stopping import ExtendConfig, extension_decision
 from station.ngs.strategy import DefaultStrategy, DensifyConfig, DensifyState
@@ -58,6 +59,7 @@ class TrainConfig:
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # in 30k-step units, scaled to `steps`
     ngs: NGSConfig = field(default_factory=NGSConfig)
     extend: ExtendConfig = field(default_factory=ExtendConfig)  # blocks of eval_every past `steps` (stopping.py)
+    resolution: ResolutionConfig = field(default_factory=ResolutionConfig)  # coarse-to-fine (resolution.py)
 
 
 @dataclass
@@ -102,6 +104,10 @@ class Trainer:
         self.ngs = NGSPhases(cfg.ngs, cfg.steps, cfg.seed) if cfg.method == "ngs" else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.cameras = [Camera(v.viewmat, v.K, v.width, v.height) for v in scene.train]
+        self.level_downscale = cfg.resolution.start_downscale  # the training level, relative to the scene's views
+        self.level_start = 0  # the step this level began at
+        self.resolution_checks: list[dict] = []
+        self._levels: dict[int, list[View]] = {1: scene.train}
         self.step = 0
         self.seconds = 0.0
         self.losses: list[dict] = []
@@ -119,6 +125,12 @@ class Trainer:
             "shN": self.cfg.lr_shN,
         }
         return {name: torch.optim.Adam([p], lr=lrs[name], eps=1e-15) for name, p in self.model.params.items()}
+
+    def train_views(self) -> list[View]:
+        """The training views at the current level, downscaled once per level."""
+        if self.level_downscale not in self._levels:
+            self._levels[self.level_downscale] = [downscaled_view(v, self.level_downscale) for v in self.scene.train]
+        return self._levels[self.level_downscale]
 
     @property
     def target_steps(self) -> int:
@@ -140,7 +152,8 @@ class Trainer:
             with torch.no_grad():
                 self.model.params["means"][0, 0] = float("nan")
         check_finite(step, {f"parameter {k}": v for k, v in self.model.params.items()})
-        view = self.scene.train[int(torch.randint(len(self.scene.train), (1,), generator=self.generator))]
+        views = self.train_views()
+        view = views[int(torch.randint(len(views), (1,), generator=self.generator))]
         if self.ngs:
             self.ngs.step_pre(step, {k: v.detach() for k, v in self.model.activated().items()}, self.cameras)
         frozen = bool(self.ngs and self.ngs.surface_frozen(step))
@@ -184,6 +197,8 @@ class Trainer:
             self.step += 1
             self.seconds = time.perf_counter() - started
             last = self.step == self.target_steps
+            if self.level_downscale > 1 and self.step % self.cfg.resolution.check_steps(self.cfg.steps) == 0:
+                self._check_resolution()
             if self.step % 100 == 0 or last:
                 self.losses.append({"step": self.step, "seconds": round(self.seconds, 2), **terms})
                 if progress:
@@ -204,6 +219,17 @@ class Trainer:
             resumed_from=resumed_from,
             model_dir=str(self.model_dir),
         )
+
+    def _check_resolution(self) -> None:
+        """Score the held-out views at full resolution and halve the downscale once this level stops paying."""
+        check = {"step": self.step, "downscale": self.level_downscale, "psnr": round(self.held_out_psnr(), 4)}
+        at_level = [c for c in self.resolution_checks if c["downscale"] == self.level_downscale] + [check]
+        decision = resolution_decision(self.cfg.resolution, at_level, self.step - self.level_start,
+                                       self.cfg.resolution.level_limit(self.cfg.steps))
+        self.resolution_checks.append(decision)
+        if decision["move_up"]:
+            self.level_downscale //= 2
+            self.level_start = self.step
 
     def _decide_extension(self) -> None:
         self.extensions.append(extension_decision(self.cfg.extend, self.evals, self.target_steps - self.cfg.steps,
@@ -252,6 +278,8 @@ class Trainer:
             "losses": list(self.losses),
             "evals": list(self.evals),
             "extensions": list(self.extensions),
+            "resolution": {"downscale": self.level_downscale, "level_start": self.level_start,
+                           "checks": list(self.resolution_checks)},
         }
 
     def save_checkpoint(self) -> None:
@@ -278,5 +306,8 @@ class Trainer:
         self.step, self.seconds = state["step"], state["seconds"]
         self.losses, self.evals = list(state["losses"]), list(state["evals"])
         self.extensions = list(state["extensions"])
+        resolution = state["resolution"]
+        self.level_downscale, self.level_start = resolution["downscale"], resolution["level_start"]
+        self.resolution_checks = list(resolution["checks"])
         return self.step
 
