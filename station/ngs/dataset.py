@@ -106,7 +106,7 @@ def _downscaled(image: np.ndarray, mask: np.ndarray | None, factor: int) -> tupl
 
 
 def downscaled_view(view: View, factor: int) -> View:
-    """The same view `factor` times coarser, filtered as load_scene's downscale is (the trainer's coarse levels)."""
+    """The same view `factor` times coarser (load_scene's downscale and the trainer's coarse levels)."""
     if factor == 1:
         return view
     image, mask = _downscaled(view.image.numpy(), None if view.mask is None else view.mask.numpy(), factor)
@@ -180,7 +180,6 @@ def load_scene(scan_root: Path, downscale: int = 1, test_every: int = 8, seed: i
             mask = mask if mask.ndim == 2 else mask.mean(axis=2)
             if mask.shape != (height, width):
                 raise BadInputError(f"{where}: mask {mask_path} is {mask.shape}, expected {(height, width)}")
-        image, mask = _downscaled(image, mask, downscale)
         K = np.array(
             [
                 [_number(frame, meta, "fl_x", source), 0.0, _number(frame, meta, "cx", source)],
@@ -188,18 +187,16 @@ def load_scene(scan_root: Path, downscale: int = 1, test_every: int = 8, seed: i
                 [0.0, 0.0, 1.0],
             ]
         )
-        K[:2] /= downscale
         c2w_cv = c2w_gl @ OPENGL_TO_OPENCV
         centres.append(c2w_cv[:3, 3])
-        views.append(
-            View(
-                name=Path(frame["file_path"]).name,
-                image=torch.from_numpy(image),
-                mask=None if mask is None else torch.from_numpy(mask),
-                viewmat=torch.from_numpy(np.linalg.inv(c2w_cv)).float(),
-                K=torch.from_numpy(K).float(),
-            )
+        view = View(
+            name=Path(frame["file_path"]).name,
+            image=torch.from_numpy(image),
+            mask=None if mask is None else torch.from_numpy(mask),
+            viewmat=torch.from_numpy(np.linalg.inv(c2w_cv)).float(),
+            K=torch.from_numpy(K).float(),
         )
+        views.append(downscaled_view(view, downscale))
     scale = scene_scale_of(np.stack(centres))
     if meta.get("ply_file_path"):
         try:

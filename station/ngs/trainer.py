@@ -104,9 +104,7 @@ class Trainer:
         self.ngs = NGSPhases(cfg.ngs, cfg.steps, cfg.seed) if cfg.method == "ngs" else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.cameras = [Camera(v.viewmat, v.K, v.width, v.height) for v in scene.train]
-        self.level_downscale = cfg.resolution.start_downscale  # the training level, relative to the scene's views
-        self.level_start = 0  # the step this level began at
-        self.resolution_checks: list[dict] = []
+        self.resolution_checks: list[dict] = []  # every check of the training level; the level follows from them
         self._levels: dict[int, list[View]] = {1: scene.train}
         self.step = 0
         self.seconds = 0.0
@@ -125,6 +123,17 @@ class Trainer:
             "shN": self.cfg.lr_shN,
         }
         return {name: torch.optim.Adam([p], lr=lrs[name], eps=1e-15) for name, p in self.model.params.items()}
+
+    @property
+    def level_downscale(self) -> int:
+        """The training level, relative to the scene's views: the start, halved at every move up so far."""
+        moves = sum(check["move_up"] for check in self.resolution_checks)
+        return max(1, self.cfg.resolution.start_downscale >> moves)
+
+    @property
+    def level_start(self) -> int:
+        """The step the current level began at."""
+        return max((check["step"] for check in self.resolution_checks if check["move_up"]), default=0)
 
     def train_views(self) -> list[View]:
         """The training views at the current level, downscaled once per level."""
@@ -227,9 +236,6 @@ class Trainer:
         decision = resolution_decision(self.cfg.resolution, at_level, self.step - self.level_start,
                                        self.cfg.resolution.level_limit(self.cfg.steps))
         self.resolution_checks.append(decision)
-        if decision["move_up"]:
-            self.level_downscale //= 2
-            self.level_start = self.step
 
     def _decide_extension(self) -> None:
         self.extensions.append(extension_decision(self.cfg.extend, self.evals, self.target_steps - self.cfg.steps,
@@ -278,8 +284,7 @@ class Trainer:
             "losses": list(self.losses),
             "evals": list(self.evals),
             "extensions": list(self.extensions),
-            "resolution": {"downscale": self.level_downscale, "level_start": self.level_start,
-                           "checks": list(self.resolution_checks)},
+            "resolution": {"checks": list(self.resolution_checks)},
         }
 
     def save_checkpoint(self) -> None:
@@ -306,8 +311,6 @@ class Trainer:
         self.step, self.seconds = state["step"], state["seconds"]
         self.losses, self.evals = list(state["losses"]), list(state["evals"])
         self.extensions = list(state["extensions"])
-        resolution = state["resolution"]
-        self.level_downscale, self.level_start = resolution["downscale"], resolution["level_start"]
-        self.resolution_checks = list(resolution["checks"])
+        self.resolution_checks = list(state["resolution"]["checks"])
         return self.step
 
