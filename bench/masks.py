@@ -78,6 +78,17 @@ def grabcut_mask(shot: np.ndarray, plate: np.ndarray) -> np.ndarray:
     return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
 
 
+def stone_specs(names: str) -> list[str]:
+    """`make_stone` specs for a comma list of procedural looks and 'meshes' (the real meshes, when present)."""
+    specs = []
+    for name in names.split(","):
+        if name == "meshes":
+            specs += [str(p) for p in sorted(SHARED_MESHES.glob("*.ply"))] if SHARED_MESHES.is_dir() else []
+        else:
+            specs.append(f"{name}:3")
+    return specs
+
+
 def score(mask: np.ndarray, truth: np.ndarray) -> dict:
     return {"iou": float((mask & truth).sum() / max((mask | truth).sum(), 1)),
             "false_stone_px": int((mask & ~truth).sum()), "missed_stone_px": int((~mask & truth).sum())}
@@ -131,13 +142,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "masks.json")
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.split("x"))
-    specs = []
-    for name in args.stones.split(","):
-        if name == "meshes":
-            specs += [str(p) for p in sorted(SHARED_MESHES.glob("*.ply"))] if SHARED_MESHES.is_dir() else []
-        else:
-            specs.append(f"{name}:3")
-    rows = [row for spec in specs for row in stone_rows(spec, size, args.step)]
+    rows = [row for spec in stone_specs(args.stones) for row in stone_rows(spec, size, args.step)]
     table_rows = summary(rows)
 
     table = Table(title=f"Masks at {size[0]}x{size[1]}: mean IoU against sim truth per ring, worst view, pixels per view")

@@ -3,7 +3,7 @@
 Reads manifest.jsonl, takes one white balance for the scan from its neutral plates, scales
 every frame to a common exposure, optionally corrects colour against a chart seen in a plate,
 and writes images/<stem>.png (16-bit sRGB), images_linear/<stem>.exr (half linear, the shot as
-developed) and masks/<stem>.png for every shot. The mask holds the stone's coverage (255 inside,
+developed; plates too, so the masks can be cut again after posing) and masks/<stem>.png for every shot. The mask holds the stone's coverage (255 inside,
 fractions on its edge), and images/ hold the stone's own colour on those edge pixels, unmixed
 from the plate (masks.Matte): an image times its mask is the stone alone on black, the form
 training matches. Frames that cannot be used are not fatal: each frame's
@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Iterable, Literal
 
 import numpy as np
 
@@ -56,6 +56,7 @@ class DevelopReport:
     white_balance: WhiteBalance
     colour_source: str  # "chart", or the camera matrix's source ("file", "libraw_table", "none")
     chart_delta_e00: tuple[float, float] | None  # (before, after) mean ΔE00 on the chart, if used
+    plates: dict[float, str]  # elevation -> stem of the developed plate in images_linear/
     seconds: float
 
     @property
@@ -65,6 +66,27 @@ class DevelopReport:
 
     def to_json(self) -> dict:
         return asdict(self)
+
+    def plate_for(self, elevation_deg: float) -> str:
+        """Stem of the developed plate a shot at this elevation is masked against."""
+        return self.plates[nearest_elevation(self.plates, elevation_deg)]
+
+
+def nearest_elevation(elevations: Iterable[float], elevation_deg: float) -> float:
+    """The plate elevation closest to a shot's (one plate per ring; a missing one borrows its neighbour's)."""
+    return min(elevations, key=lambda e: abs(e - elevation_deg))
+
+
+def flag_implausible_masks(
+    rings: dict[float, list[tuple[float, str, np.ndarray]]], reports: dict[str, FrameReport], settings: MaskCheckSettings
+) -> None:
+    """Replace each frame's mask flags with `check_masks`' verdict on its ring of (azimuth, file, mask)."""
+    for ring in rings.values():
+        ring.sort(key=lambda item: item[0])
+        for check in check_masks([m for _, _, m in ring], [f for _, f, _ in ring], settings):
+            report = reports[check.name]
+            report.flags = [f for f in report.flags if not f.startswith("mask:")]
+            report.flags += [f"mask: {reason}" for reason in check.reasons]
 
 
 def _flag_names(flags: list[str]) -> set[str]:
@@ -123,7 +145,10 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         report.clipped_fraction, report.exposure_scale = frame.clipped_fraction, scale
         return frame
 
-    developed_plates = {e.elevation_deg: frame for e in plates if (frame := develop(e)) is not None}
+    developed_plates, plate_stems = {}, {}
+    for entry in plates:
+        if (frame := develop(entry)) is not None:
+            developed_plates[entry.elevation_deg], plate_stems[entry.elevation_deg] = frame, Path(entry.file).stem
     if not developed_plates:
         raise ScanFolderError(f"{scan.root}: no plate frame could be developed")
     correction, colour_source, chart_de = None, next(iter(developed_plates.values())).matrix_source, None
@@ -137,6 +162,10 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
                 correction, colour_source = fit.matrix.astype(np.float32), "chart"
                 chart_de = (fit.delta_e_before, fit.delta_e_after)
                 break
+    plate_linear = {}
+    for elevation, plate in developed_plates.items():
+        plate_linear[elevation] = plate.linear if correction is None else np.clip(plate.linear @ correction.T, 0.0, None)
+        write_exr_half(scan.images_linear_dir / f"{plate_stems[elevation]}.exr", plate_linear[elevation])
 
     rings: dict[float, list[tuple[float, str, np.ndarray]]] = {}
     for entry in (e for e in readable if e.kind == "shot"):
@@ -144,17 +173,12 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         if frame is None:
             continue
         report = reports[entry.file]
-        elevations = np.array(list(developed_plates))
-        plate_elev = float(elevations[np.argmin(np.abs(elevations - entry.elevation_deg))])
-        plate = developed_plates[plate_elev]
+        plate_elev = nearest_elevation(plate_linear, entry.elevation_deg)
         if abs(plate_elev - entry.elevation_deg) > 1e-3:
             report.flags.append(f"no_plate: none at {entry.elevation_deg} deg, masked against {plate_elev} deg")
-        linear, plate_linear = frame.linear, plate.linear
-        if correction is not None:
-            linear = np.clip(linear @ correction.T, 0.0, None)
-            plate_linear = np.clip(plate_linear @ correction.T, 0.0, None)
+        linear = frame.linear if correction is None else np.clip(frame.linear @ correction.T, 0.0, None)
         stem = Path(entry.file).stem
-        matte = compute_matte(linear, plate_linear, settings.masks)
+        matte = compute_matte(linear, plate_linear[plate_elev], settings.masks)
         mask = matte.mask
         write_png16(scan.images_dir / f"{stem}.png", matte.foreground)
         write_exr_half(scan.images_linear_dir / f"{stem}.exr", linear)
@@ -162,15 +186,13 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         report.mask_area_fraction = float(mask.mean())
         rings.setdefault(entry.elevation_deg, []).append((entry.azimuth_deg, entry.file, mask))
 
-    for ring in rings.values():
-        ring.sort(key=lambda item: item[0])
-        for check in check_masks([m for _, _, m in ring], [f for _, f, _ in ring], settings.checks):
-            reports[check.name].flags += [f"mask: {reason}" for reason in check.reasons]
+    flag_implausible_masks(rings, reports, settings.checks)
     used_wb = wb or WhiteBalance((1.0, 1.0, 1.0), source="as shot, per frame")
     return DevelopReport(
         frames=[reports[e.file] for e in entries],
         white_balance=used_wb,
         colour_source=colour_source,
         chart_delta_e00=chart_de,
+        plates=plate_stems,
         seconds=time.perf_counter() - start,
     )

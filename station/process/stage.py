@@ -1,4 +1,5 @@
-"""`station process`: develop, mask and pose one scan folder, then mark the stage done.
+"""`station process`: develop, mask and pose one scan folder, cut the masks again across rings, then mark
+the stage done.
 
 The rig model comes from, in order: a calibrated station model (`STATION_RIG_MODEL` or the
 `rig_model` argument), the nominal rig recorded in scan.json, or none at all (pure SfM, for scans
@@ -11,6 +12,7 @@ import os
 from pathlib import Path
 
 from station.errors import BadInputError
+from station.process.cross_view import CrossViewSettings, refine_masks_across_rings
 from station.process.develop_stage import ProcessSettings, develop_scan
 from station.process.poses import PoseSettings, pose_scan
 from station.process.rig_model import RigModel
@@ -38,8 +40,10 @@ def process_scan(
     develop: ProcessSettings = ProcessSettings(),
     poses: PoseSettings = PoseSettings(),
     rig_model: Path | None = None,
+    cross_view: CrossViewSettings = CrossViewSettings(),
 ) -> dict:
-    """Develop + masks, then poses; returns (and records in stages/process.json) both reports."""
+    """Develop + masks, then poses, then the masks again with the other rings' silhouettes; returns (and
+    records in stages/process.json) the reports."""
     scan = ScanFolder(scan_root)
     if not scan.root.is_dir():
         raise BadInputError(f"{scan.root}: scan folder not found")
@@ -47,8 +51,10 @@ def process_scan(
     if not developed.usable_shots:
         raise BadInputError(f"{scan.root}: no usable shot after develop; see the per-frame flags in stages/")
     posed = pose_scan(scan, poses, station_rig_model(scan, rig_model))
+    masks_across_rings = refine_masks_across_rings(scan, developed, develop, cross_view)
     flags = sorted({flag for frame in developed.frames for flag in frame.flags} | set(posed.flags))
-    result = {"develop": developed.to_json(), "poses": posed.to_dict(), "flags": flags}
+    result = {"develop": developed.to_json(), "poses": posed.to_dict(), "masks_across_rings": masks_across_rings,
+              "flags": flags}
     result["develop"]["usable_shots"] = len(developed.usable_shots)
     scan.mark_done("process", result)
     return result

@@ -47,23 +47,27 @@ def view_bounds(c2ws: list[np.ndarray], intr: Intrinsics) -> tuple[np.ndarray, n
     return centre - half, centre + half
 
 
-def carve(
+def grid_points(lo: np.ndarray, hi: np.ndarray, resolution: int) -> np.ndarray:
+    """Voxel centres [R^3, 3] of a resolution^3 grid spanning the box lo..hi, x slowest."""
+    axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def carve_grid(
     c2ws: list[np.ndarray],
     masks: list[np.ndarray],
-    images: list[np.ndarray],
     intr: Intrinsics,
-    resolution: int = 96,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Surface voxels of the visual hull [N, 3] and their mean colour over the views [N, 3] uint8."""
-    lo, hi = view_bounds(c2ws, intr)
-    axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # [R^3, 3]
+    grid: np.ndarray,
+    images: list[np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Which `grid` points [N, 3] lie inside every mask that sees them [N] bool, and their mean colour [N, 3]
+    over the views (when `images` are given)."""
     alive = np.arange(len(grid))  # voxels not yet carved away: each view only projects these
     seen_count = np.zeros(len(grid), dtype=np.int64)
-    colour_sum = np.zeros((len(grid), 3))
+    colour_sum = np.zeros((len(grid), 3)) if images is not None else None
     colour_n = np.zeros(len(grid))
     k = intr.matrix().astype(np.float32)
-    for c2w, mask, image in zip(c2ws, masks, images):
+    for i, (c2w, mask) in enumerate(zip(c2ws, masks)):
         w2c = np.linalg.inv(c2w).astype(np.float32)
         cam = grid[alive].astype(np.float32) @ w2c[:3, :3].T + w2c[:3, 3]  # [A, 3]
         front = cam[:, 2] > 1e-6
@@ -75,18 +79,37 @@ def carve(
         hit = np.zeros(len(alive), dtype=bool)
         hit[seen] = mask[v[seen], u[seen]]
         seen_count[alive[seen]] += 1
-        colour_sum[alive[hit]] += image[v[hit], u[hit], :3]
-        colour_n[alive[hit]] += 1
+        if colour_sum is not None:
+            colour_sum[alive[hit]] += images[i][v[hit], u[hit], :3]
+            colour_n[alive[hit]] += 1
         alive = alive[hit | ~seen]  # a voxel outside the frame is not evidence against it
     inside = np.zeros(len(grid), dtype=bool)
     inside[alive] = True
     inside &= seen_count >= max(2, len(c2ws) // 2)  # ...but a voxel few views see is not evidence for it
+    colours = colour_sum / np.maximum(colour_n, 1)[:, None] if colour_sum is not None else None
+    return inside, colours
+
+
+def surface_voxels(inside: np.ndarray, resolution: int) -> np.ndarray:
+    """Occupied voxels [R^3] bool with at least one empty face neighbour (or on the grid's edge)."""
     occ = inside.reshape((resolution,) * 3)
     padded = np.pad(occ, 1, constant_values=False)
     interior = occ.copy()
     for axis in range(3):
         for shift in (-1, 1):
             interior &= np.roll(padded, shift, axis=axis)[1:-1, 1:-1, 1:-1]
-    surface = (occ & ~interior).reshape(-1)
-    colours = colour_sum[surface] / np.maximum(colour_n[surface], 1)[:, None]
-    return grid[surface], np.clip(colours, 0, 255).astype(np.uint8)
+    return (occ & ~interior).reshape(-1)
+
+
+def carve(
+    c2ws: list[np.ndarray],
+    masks: list[np.ndarray],
+    images: list[np.ndarray],
+    intr: Intrinsics,
+    resolution: int = 96,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Surface voxels of the visual hull [N, 3] and their mean colour over the views [N, 3] uint8."""
+    grid = grid_points(*view_bounds(c2ws, intr), resolution)
+    inside, colours = carve_grid(c2ws, masks, intr, grid, images)
+    surface = surface_voxels(inside, resolution)
+    return grid[surface], np.clip(colours[surface], 0, 255).astype(np.uint8)

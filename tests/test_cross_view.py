@@ -1,0 +1,95 @@
+"""Masks cut again with the stone's silhouette as the other rings predict it (station/process/cross_view.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_masks import iou, synthetic_pair
+
+from sim.scene import World, render
+from sim.stone import procedural_stone
+from sim.truth import mask_path_for
+from station.cli_scan import run_sim_scan
+from station.errors import BadInputError
+from station.process.cross_view import CrossViewSettings, carve_hull, project_hull
+from station.process.images_io import read_mask_png
+from station.process.masks import compute_mask
+from station.process.sfm import Intrinsics
+from station.process.stage import process_scan
+from station.rig_geometry import RigGeometry, camera_to_turntable
+from station.scanfolder import ScanFolder
+
+RIG = RigGeometry()
+INTRINSICS = Intrinsics(RIG.width, RIG.height, RIG.focal_px, RIG.focal_px, RIG.width / 2, RIG.height / 2)
+
+
+@pytest.fixture(scope="module")
+def rings() -> dict[float, list[tuple[np.ndarray, np.ndarray]]]:
+    """(camera-to-world, true mask) for 24 views on each of three rings of a simulated stone."""
+    world = World(procedural_stone(5, look="grey"), RIG)
+    return {
+        elevation: [(camera_to_turntable(elevation, a, RIG), render(world, elevation, a, supersample=2).mask)
+                    for a in np.arange(0.0, 360.0, 15.0)]
+        for elevation in (10.0, 40.0, 70.0)
+    }
+
+
+def test_the_other_rings_hull_projects_onto_a_views_own_silhouette(rings) -> None:
+    views = rings[10.0] + rings[70.0]
+    hull = carve_hull([c for c, _ in views], [m for _, m in views], INTRINSICS, CrossViewSettings())
+    for c2w, truth in rings[40.0][::6]:
+        assert iou(project_hull(hull, c2w, INTRINSICS), truth) >= 0.94  # a hull from 48 views: about a pixel out
+
+
+def test_the_hull_stops_at_the_plate(rings) -> None:
+    # seen only from above, the space under the stone down to the plate and beyond is never carved
+    views = rings[40.0] + rings[70.0]
+    hull = carve_hull([c for c, _ in views], [m for _, m in views], INTRINSICS, CrossViewSettings())
+    assert hull.surface[:, 2].min() >= -0.5 * hull.voxel[2]
+    deep = carve_hull([c for c, _ in views], [m for _, m in views], INTRINSICS, CrossViewSettings(plate_z=None))
+    assert deep.surface[:, 2].min() < -0.005
+
+
+def test_masks_that_agree_on_nothing_give_an_empty_hull() -> None:
+    c2ws = [camera_to_turntable(30.0, a, RIG) for a in (0.0, 90.0, 180.0)]
+    empty = [np.zeros((RIG.height, RIG.width), dtype=bool)] * 3
+    hull = carve_hull(c2ws, empty, INTRINSICS, CrossViewSettings())
+    assert len(hull.surface) == 0
+    assert not project_hull(hull, c2ws[0], INTRINSICS).any()
+
+
+def test_a_predicted_silhouette_recovers_a_shaded_side_the_shot_alone_loses() -> None:
+    # the shaded lower half is smooth, grey and darker than the plate: alone, the cut gives it to the shadow
+    shot, plate, truth = synthetic_pair("pale", shading=0.15)
+    assert iou(compute_mask(shot, plate), truth) < 0.9
+    predicted = np.roll(truth, 1, axis=1)  # the other rings' hull is about a pixel out
+    assert iou(compute_mask(shot, plate, silhouette=predicted), truth) >= 0.98
+
+
+def test_a_silhouette_of_the_wrong_size_is_refused() -> None:
+    shot, plate, truth = synthetic_pair("dark")
+    with pytest.raises(BadInputError, match="silhouette"):
+        compute_mask(shot, plate, silhouette=truth[:-1])
+
+
+@pytest.mark.slow
+def test_process_cuts_a_pale_stones_lowest_rings_again_from_the_rings_above(tmp_path: Path) -> None:
+    # seen from the lowest ring, this stone's shaded side fades into its contact shadow (first cut: IoU 0.89)
+    run_sim_scan(tmp_path, "pale:3", 6, 12, (320, 240), 0.01, lambda done, total, what: None)
+    result = process_scan(tmp_path)
+
+    scan = ScanFolder(tmp_path)
+    by_ring: dict[float, list[float]] = {}
+    for frame in result["develop"]["frames"]:
+        if frame["kind"] == "shot":
+            mask = read_mask_png(scan.masks_dir / f"{Path(frame['file']).stem}.png")
+            by_ring.setdefault(frame["elevation_deg"], []).append(iou(mask, read_mask_png(mask_path_for(tmp_path, frame["file"]))))
+    lowest, *above = sorted(by_ring)
+    assert np.mean(by_ring[lowest]) >= 0.95
+    assert all(np.mean(by_ring[e]) >= 0.98 for e in above)
+    recut = {ring["elevation_deg"]: ring["recut"] for ring in result["masks_across_rings"]["rings"]}
+    assert len(recut[lowest]) >= 6  # most of the lowest ring lost its shaded side
+    assert all(not recut[e] for e in above[1:])  # views the shot alone masks well are left as cut
+    assert (scan.images_linear_dir / "plate_e0.exr").is_file()  # the plates a re-cut needs are kept
