@@ -116,8 +116,6 @@ def refine_masks_across_rings(
     posed = {by_stem[Path(p.file_path).stem]: p.c2w for p in transforms.frames if Path(p.file_path).stem in by_stem}
     intr = transforms.intrinsics
     masks = {file: read_mask_png(scan.masks_dir / f"{Path(file).stem}.png") for file in posed}
-    if any(m.shape != (intr.height, intr.width) for m in masks.values()):
-        return {"skipped": "masks and poses differ in size"}
     elevations = sorted({frames[file].elevation_deg for file in posed})
     rings: dict[float, list[tuple[float, str, np.ndarray]]] = {}
     summary = []

@@ -1,4 +1,5 @@
-"""Visual hull: a starting cloud carved from the masks when SfM finds too few points.
+"""Visual hull: a starting cloud carved from the masks when SfM finds too few points, and the
+silhouette other rings predict for a view (cross_view.py).
 
 Also the camera-set geometry it needs (where a ring of cameras looks, which way is up), shared
 with the pure-SfM gauge and the importers.
