@@ -26,7 +26,7 @@ from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from masks import stone_specs  # noqa: E402  (bench/masks.py)
+from masks import score, stone_specs  # noqa: E402  (bench/masks.py)
 from sim.truth import mask_path_for  # noqa: E402
 from station.cli_scan import run_sim_scan  # noqa: E402
 from station.process.cross_view import refine_masks_across_rings  # noqa: E402
@@ -41,17 +41,15 @@ SIZE = (320, 240)
 
 def ring_scores(scan: ScanFolder, elevation_of: dict[str, float]) -> dict[float, dict]:
     """Per ring: mean and min IoU of masks/ against sim_truth, mean false and missed stone pixels."""
-    rows: dict[float, list[tuple[float, int, int]]] = {}
+    rows: dict[float, list[dict]] = {}
     for file, elevation in elevation_of.items():
         mask = read_mask_png(scan.masks_dir / f"{Path(file).stem}.png")
-        truth = read_mask_png(mask_path_for(scan.root, file))
-        union = max(int((mask | truth).sum()), 1)
-        rows.setdefault(elevation, []).append(
-            (float((mask & truth).sum() / union), int((mask & ~truth).sum()), int((~mask & truth).sum())))
-    return {e: {"iou_mean": round(float(np.mean([r[0] for r in v])), 4),
-                "iou_min": round(float(np.min([r[0] for r in v])), 4),
-                "false_stone_px_mean": round(float(np.mean([r[1] for r in v])), 1),
-                "missed_stone_px_mean": round(float(np.mean([r[2] for r in v])), 1)} for e, v in sorted(rows.items())}
+        rows.setdefault(elevation, []).append(score(mask, read_mask_png(mask_path_for(scan.root, file))))
+    return {e: {"iou_mean": round(float(np.mean([r["iou"] for r in v])), 4),
+                "iou_min": round(float(np.min([r["iou"] for r in v])), 4),
+                "false_stone_px_mean": round(float(np.mean([r["false_stone_px"] for r in v])), 1),
+                "missed_stone_px_mean": round(float(np.mean([r["missed_stone_px"] for r in v])), 1)}
+            for e, v in sorted(rows.items())}
 
 
 def stone_record(spec: str, root: Path, azimuths: int) -> dict:

@@ -105,8 +105,8 @@ def misses_deep_stone(mask: np.ndarray, silhouette: np.ndarray, settings: CrossV
 def refine_masks_across_rings(
     scan: ScanFolder, develop: DevelopReport, process: ProcessSettings, settings: CrossViewSettings = CrossViewSettings()
 ) -> dict:
-    """Cut every posed shot's matte again with its other-ring silhouette; rewrite images/ and masks/ and the
-    mask flags. Returns what changed, per ring."""
+    """Cut again, with its other-ring silhouette, every posed shot whose mask misses deep stone; rewrite their
+    images/ and masks/ and the mask flags. Returns what changed, per ring."""
     start = time.perf_counter()
     if not settings.enabled:
         return {"skipped": "disabled"}
