@@ -14,7 +14,10 @@ from station.cli_serve import serve
 from station.cli_support import configure_logging, emit, err_console, exits_on_station_errors, parse_size, progress_reporter
 from station.errors import BadInputError
 
-DEMO_SENSOR = (320, 240)  # simulated sensor size for `station demo`
+DEMO_SENSOR = (640, 480)  # simulated sensor size for `station demo`: masks are cut at this size ...
+DEMO_TRAINING_WIDTH = 320  # ... and averaged down to the training images' (a camera finer than training)
+TRAINING_WIDTH_HELP = ("Width of the training images and masks, area-averaged from the masks cut on the developed raws; "
+                       "default: as developed.")
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Turntable capture-to-asset station.")
 
@@ -74,12 +77,14 @@ def scan(
 @exits_on_station_errors
 def process_command(
     scan_dir: Path = typer.Argument(..., help="Scan folder with raw/ and manifest.jsonl."),
+    training_width: Optional[int] = typer.Option(None, "--training-width", help=TRAINING_WIDTH_HELP),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Develop the raws, cut the masks and pose the images (writes images/, masks/, poses/)."""
+    from station.process.develop_stage import ProcessSettings
     from station.process.stage import process_scan
 
-    result = process_scan(scan_dir)
+    result = process_scan(scan_dir, ProcessSettings(training_width=training_width))
     emit(result, as_json, lambda r: err_console.print(
         f"process {scan_dir}: {r['develop']['usable_shots']} images, posed by {r['poses']['method']} "
         f"({len(r['poses']['registered'])} registered), flags: {', '.join(r['flags']) or 'none'}"
@@ -170,16 +175,18 @@ def _print_verdict(report, as_json: bool) -> None:
     emit(result, as_json, lambda r: err_console.print(report.gate.summary()))
 
 
-def run_pipeline(scan_dir: Path, method: str, preset: str, reference: Path | None = None):
+def run_pipeline(scan_dir: Path, method: str, preset: str, reference: Path | None = None,
+                 training_width: int | None = None):
     """process -> train -> export, skipping stages already marked done (resumable)."""
     from station.export.stage import ExportConfig, export_scan
+    from station.process.develop_stage import ProcessSettings
     from station.process.stage import process_scan
     from station.scanfolder import ScanFolder
 
     scan = ScanFolder(scan_dir)
     if not scan.is_done("process"):
         err_console.print("process: develop, masks, poses ...")
-        process_scan(scan_dir)
+        process_scan(scan_dir, ProcessSettings(training_width=training_width))
     if not scan.is_done("train"):
         err_console.print(f"train: {method}, {preset} preset ...")
         _train_with_progress(scan_dir, method, preset)
@@ -193,10 +200,11 @@ def run(
     scan_dir: Path = typer.Argument(..., help="Scan folder; resumes where it stopped."),
     method: str = typer.Option("ngs", "--method"),
     preset: str = typer.Option("fast", "--preset"),
+    training_width: Optional[int] = typer.Option(None, "--training-width", help=TRAINING_WIDTH_HELP),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """process + train + export; stages already done are skipped. Exit 1 if the gate fails."""
-    report = run_pipeline(scan_dir, method, preset)
+    report = run_pipeline(scan_dir, method, preset, training_width=training_width)
     _print_verdict(report, as_json)
     if not report.passed:
         raise typer.Exit(1)
@@ -216,7 +224,8 @@ def demo(
     with progress_reporter("scan") as progress:
         run_sim_scan(scan_dir, None, 6, 40, DEMO_SENSOR, 0.05, progress)
     # The simulator knows the true stone: the demo scores its mesh against it.
-    report = run_pipeline(scan_dir, "ngs", "fast", reference=scan_dir / "sim_truth" / "mesh.ply")
+    report = run_pipeline(scan_dir, "ngs", "fast", reference=scan_dir / "sim_truth" / "mesh.ply",
+                          training_width=DEMO_TRAINING_WIDTH)
     err_console.print(f"demo finished in {time.monotonic() - started:.0f} s; asset in {scan_dir / 'asset'}")
     _print_verdict(report, as_json)
     if not report.passed:

@@ -18,6 +18,9 @@ cost the lowest ring of a speckled stone 0.008 IoU. Gated, on full simulated sca
 (bench/cross_view.py), the pale stone's lowest ring rose from 0.869 to 0.968 (33 of 40 views
 cut again) and the ring above from 0.980 to 0.983, while the dark, grey and speckled stones'
 lowest rings lost 0.0005-0.0015 (13, 3 and 2 views) and two real meshes had no view cut again.
+
+The hull is carved from the masks at the training size, the poses' own; a view is cut again at the
+size it was developed, as its first cut was (its silhouette projected there), then averaged down.
 """
 
 from __future__ import annotations
@@ -136,7 +139,11 @@ def refine_masks_across_rings(
             silhouette = project_hull(hull, posed[file], intr)
             after = masks[file]
             if misses_deep_stone(masks[file], silhouette, settings) > settings.max_deep_missed:
-                matte = compute_matte(read_exr(scan.images_linear_dir / f"{stem}.exr"), plate, process.masks, silhouette)
+                shot = read_exr(scan.images_linear_dir / f"{stem}.exr")
+                if shot.shape[:2] != silhouette.shape:
+                    # cut at the developed resolution, as the first cut was, then averaged down to the poses'
+                    silhouette = project_hull(hull, posed[file], intr.scaled(shot.shape[1], shot.shape[0]))
+                matte = compute_matte(shot, plate, process.masks, silhouette).downscaled(intr.width)
                 write_png16(scan.images_dir / f"{stem}.png", matte.foreground)
                 write_mask_png(scan.masks_dir / f"{stem}.png", matte.alpha)
                 after = matte.mask

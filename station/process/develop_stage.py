@@ -3,10 +3,13 @@
 Reads manifest.jsonl, takes one white balance for the scan from its neutral plates, scales
 every frame to a common exposure, optionally corrects colour against a chart seen in a plate,
 and writes images/<stem>.png (16-bit sRGB), images_linear/<stem>.exr (half linear, the shot as
-developed; plates too, so the masks can be cut again after posing) and masks/<stem>.png for every shot. The mask holds the stone's coverage (255 inside,
-fractions on its edge), and images/ hold the stone's own colour on those edge pixels, unmixed
-from the plate (masks.Matte): an image times its mask is the stone alone on black, the form
-training matches. Frames that cannot be used are not fatal: each frame's
+developed; plates too, so the masks can be cut again after posing) and masks/<stem>.png for every
+shot. The mask holds the stone's coverage (255 inside, fractions on its edge), and images/ hold the
+stone's own colour on those edge pixels, unmixed from the plate (masks.Matte): an image times its
+mask is the stone alone on black, the form training matches. The matte is cut at the developed
+resolution and, when `ProcessSettings.training_width` is narrower, area-averaged down to it for
+images/ and masks/ (images_linear/ stays as developed): a camera finer than the training images
+gives masks finer than one training pixel. Frames that cannot be used are not fatal: each frame's
 report carries its flags (unreadable, black, saturated, clipped highlights, implausible
 mask), so an unattended run finishes and says exactly which views are suspect.
 """
@@ -36,6 +39,11 @@ class ProcessSettings:
     white_balance: Literal["plate", "as_shot"] = "plate"
     use_chart: bool = True  # correct colour against a ColorChecker found in a plate
     max_chart_delta_e: float = 6.0  # a chart fit worse than this is ignored (mis-located, too small)
+    training_width: int | None = None  # images/ and masks/ are area-averaged down to this width; None: as developed
+
+    def __post_init__(self) -> None:
+        if self.training_width is not None and self.training_width < 1:
+            raise BadInputError(f"training width {self.training_width}: must be a positive number of pixels")
 
 
 @dataclass
@@ -179,6 +187,8 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         linear = frame.linear if correction is None else np.clip(frame.linear @ correction.T, 0.0, None)
         stem = Path(entry.file).stem
         matte = compute_matte(linear, plate_linear[plate_elev], settings.masks)
+        if settings.training_width is not None:
+            matte = matte.downscaled(settings.training_width)
         mask = matte.mask
         write_png16(scan.images_dir / f"{stem}.png", matte.foreground)
         write_exr_half(scan.images_linear_dir / f"{stem}.exr", linear)
