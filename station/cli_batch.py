@@ -93,6 +93,8 @@ def run(
     forever: bool = typer.Option(False, "--forever", help="Keep waiting for new scans (--watch) instead of stopping when the queue is empty."),
     method: str = typer.Option("ngs", "--method", help="3dgs, alpha or ngs."),
     preset: str = typer.Option("fast", "--preset", help="Training preset (paper, fast, tiny)."),
+    training_width: Optional[int] = typer.Option(
+        None, "--training-width", min=1, help="Width of the training images and masks, averaged down from the developed raws."),
     lease: float = typer.Option(60.0, "--lease", min=1.0, help="Seconds a claimed scan stays leased without a heartbeat."),
     max_attempts: int = typer.Option(3, "--max-attempts", min=1, help="Attempts before an erring scan is parked."),
     backoff: float = typer.Option(30.0, "--backoff", min=0.0, help="Seconds before the first retry; doubled each time."),
@@ -115,8 +117,8 @@ def run(
     make_config(method, preset)  # an unknown method or preset is refused before any work
     budgets = with_budgets(_stage_values(time_budget or [], "--time-budget"),
                            _stage_values(disk_budget or [], "--disk-budget"))
-    settings = BatchSettings(method=method, preset=preset, workers=workers, threads=threads, poll_seconds=poll,
-                             budgets=budgets)
+    settings = BatchSettings(method=method, preset=preset, training_width=training_width, workers=workers,
+                             threads=threads, poll_seconds=poll, budgets=budgets)
     store = _store(queue, config=StoreConfig(lease_seconds=lease, max_attempts=max_attempts, backoff_seconds=backoff))
     if executor == "ray":
         from station.batch.ray_executor import RayExecutor

@@ -20,6 +20,7 @@ from station.batch.runner import DEFAULT_BUDGETS, BatchSettings, StageBudget, ru
 from station.batch.stages import STAGES, scan_stage_key
 from station.batch.store import JobStore, StoreConfig
 from station.ngs.presets import make_config, safer_preset
+from station.process.images_io import read_png16
 from station.scanfolder import ScanFolder
 
 FAST_STORE = StoreConfig(lease_seconds=2, max_attempts=3, backoff_seconds=0)
@@ -91,3 +92,14 @@ def test_the_safer_preset_halves_step_sizes_gaussian_budget_and_resolution():
     assert (safe.lr_means, safe.lr_opacities) == (base.lr_means / 2, base.lr_opacities / 2)
     assert (safe.densify.max_gaussians, safe.downscale) == (base.densify.max_gaussians // 2, base.downscale * 2)
     assert (safe.steps, safe.ngs) == (base.steps, base.ngs)
+
+
+def test_the_training_width_reaches_the_process_stage_and_is_part_of_its_key(queued):
+    store, scan = queued
+    run_batch(store, replace(SETTINGS, training_width=80), LocalExecutor())
+
+    images = sorted(ScanFolder(scan).images_dir.glob("*.png"))
+    assert images and all(read_png16(path).shape[1] == 80 for path in images)  # the sensor is 160 wide
+    process = next(spec for spec in STAGES if spec.name == "process")
+    assert scan_stage_key(ScanFolder(scan), process, {"training_width": 80}, {}) != scan_stage_key(
+        ScanFolder(scan), process, {}, {})  # another width processes the scan again

@@ -79,6 +79,7 @@ def with_budgets(seconds: dict[str, float], free_mb: dict[str, float]) -> dict[s
 class BatchSettings:
     method: str = "ngs"
     preset: str = "fast"
+    training_width: int | None = None  # process: images and masks averaged down to this width; None: as developed
     workers: int = 1
     threads: int = 0  # CPU threads per stage; 0: the machine's cores shared among the workers
     poll_seconds: float = 2.0  # idle wait between claims
@@ -153,6 +154,15 @@ def _train_params(settings: BatchSettings, events: list[dict[str, Any]]) -> dict
     return {"method": settings.method, "preset": safer_preset(settings.preset) if failed else settings.preset}
 
 
+def _stage_params(settings: BatchSettings, stage: str, events: list[dict[str, Any]]) -> dict[str, Any]:
+    """What a stage is run with beyond its inputs; part of its key, so a change runs it again."""
+    if stage == "train":
+        return _train_params(settings, events)
+    if stage == "process" and settings.training_width is not None:
+        return {"training_width": settings.training_width}
+    return {}
+
+
 def _lost_starts(events: list[dict[str, Any]], stage: str, key: str) -> int:
     mine = [e["event"] for e in events if e["stage"] == stage and e["key"] == key]
     return mine.count("started") - sum(mine.count(end) for end in ("finished", "failed", "abandoned"))
@@ -208,7 +218,7 @@ class JobRun:
         while True:
             started = time.perf_counter()
             events = _events(self.store, self.job)
-            params = _train_params(self.settings, events) if spec.name == "train" else {}
+            params = _stage_params(self.settings, spec.name, events)
             key = scan_stage_key(self.scan, spec, params, outputs)
             record = finished_record(self.scan, spec, key)
             if record is not None:

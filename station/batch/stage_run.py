@@ -37,7 +37,7 @@ OutcomeKind = Literal[
 class StageCall:
     scan: str  # absolute scan folder path
     stage: StageName
-    params: dict[str, Any]  # train: {"method", "preset"}; other stages: {}
+    params: dict[str, Any]  # train: {"method", "preset"}; process: {"training_width"} when set; export: {}
     seconds: float  # time budget
     threads: int  # CPU threads the stage may use
 
@@ -94,9 +94,10 @@ def limit_threads(threads: int) -> None:
 def _run(call: StageCall) -> dict[str, Any]:
     root = Path(call.scan)
     if call.stage == "process":
+        from station.process.develop_stage import ProcessSettings
         from station.process.stage import process_scan
 
-        result = process_scan(root)
+        result = process_scan(root, ProcessSettings(training_width=call.params.get("training_width")))
         return {"flags": result["flags"], "usable_shots": result["develop"]["usable_shots"],
                 "frames": [{"file": f["file"], "flags": f["flags"]} for f in result["develop"]["frames"] if f["flags"]]}
     if call.stage == "train":
