@@ -37,7 +37,7 @@ from sim.scene import World, render  # noqa: E402
 from sim.truth import mask_path_for  # noqa: E402
 from station.cli_scan import run_sim_scan  # noqa: E402
 from station.process.cross_view import refine_masks_across_rings  # noqa: E402
-from station.process.develop_stage import ProcessSettings, develop_scan  # noqa: E402
+from station.process.develop_stage import DevelopReport, ProcessSettings, develop_scan  # noqa: E402
 from station.process.images_io import read_mask_png  # noqa: E402
 from station.process.poses import PoseSettings, pose_scan  # noqa: E402
 from station.process.stage import station_rig_model  # noqa: E402
@@ -59,7 +59,7 @@ def ring_scores(scan: ScanFolder, elevation_of: dict[str, float], truth: dict[st
             for e, v in sorted(rows.items())}
 
 
-def truth_masks(scan: ScanFolder, spec: str, developed, training_width: int | None) -> dict[str, np.ndarray]:
+def truth_masks(scan: ScanFolder, spec: str, developed: DevelopReport, training_width: int | None) -> dict[str, np.ndarray]:
     """The true mask of every masked shot: sim_truth's, or rendered at the training size when there is one."""
     shots = [f for f in developed.frames if f.kind == "shot" and f.mask_area_fraction is not None]
     if training_width is None:
