@@ -18,7 +18,6 @@ Prints a table and writes bench/results/masks_across_rings.json.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -33,15 +32,13 @@ from rich.table import Table
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from masks import score, stone_specs  # noqa: E402  (bench/masks.py)
 from sim.rig import make_stone  # noqa: E402
-from sim.scene import World, render  # noqa: E402
-from sim.truth import mask_path_for  # noqa: E402
+from sim.truth import mask_path_for, true_masks_at  # noqa: E402
 from station.cli_scan import run_sim_scan  # noqa: E402
 from station.process.cross_view import refine_masks_across_rings  # noqa: E402
 from station.process.develop_stage import DevelopReport, ProcessSettings, develop_scan  # noqa: E402
 from station.process.images_io import read_mask_png  # noqa: E402
 from station.process.poses import PoseSettings, pose_scan  # noqa: E402
 from station.process.stage import station_rig_model  # noqa: E402
-from station.rig_geometry import RigGeometry  # noqa: E402
 from station.scanfolder import ScanFolder, atomic_write_json  # noqa: E402
 
 
@@ -61,15 +58,10 @@ def ring_scores(scan: ScanFolder, elevation_of: dict[str, float], truth: dict[st
 
 def truth_masks(scan: ScanFolder, spec: str, developed: DevelopReport, training_width: int | None) -> dict[str, np.ndarray]:
     """The true mask of every masked shot: sim_truth's, or rendered at the training size when there is one."""
-    shots = [f for f in developed.frames if f.kind == "shot" and f.mask_area_fraction is not None]
+    shots = [f.file for f in developed.frames if f.kind == "shot" and f.mask_area_fraction is not None]
     if training_width is None:
-        return {f.file: read_mask_png(mask_path_for(scan.root, f.file)) for f in shots}
-    sensor = RigGeometry.from_dict(scan.read_scan_json()["rig"])
-    world = World(make_stone(spec), rig=sensor.scaled(training_width, round(sensor.height * training_width / sensor.width)))
-    # where the turntable and arm really were (their steps), as sim_truth records it
-    where = {c["file"]: c for c in json.loads((scan.root / "sim_truth" / "cameras.json").read_text())["frames"]}
-    return {f.file: render(world, where[f.file]["elevation_deg"], where[f.file]["azimuth_deg"],
-                           stone_present=True, supersample=4).mask for f in shots}
+        return {file: read_mask_png(mask_path_for(scan.root, file)) for file in shots}
+    return true_masks_at(scan.root, make_stone(spec), training_width, shots)
 
 
 def stone_record(spec: str, root: Path, azimuths: int, sensor: tuple[int, int], training_width: int | None) -> dict:

@@ -16,8 +16,9 @@ import numpy as np
 from PIL import Image
 
 from sim.scene import World, render
+from sim.stone import Stone
 from station.errors import ScanFolderError
-from station.rig_geometry import camera_to_turntable
+from station.rig_geometry import RigGeometry, camera_to_turntable
 from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
 
 Frame = tuple[str, float, float]  # (file relative to the scan root, elevation_deg, azimuth_deg)
@@ -31,6 +32,18 @@ def _truth_paths(scan_root: Path) -> tuple[Path, Path, Path]:
 def mask_path_for(scan_root: Path, file: str) -> Path:
     """Where the true mask of frame `file` lives: sim_truth/masks/<stem>.png."""
     return _truth_paths(scan_root)[2] / f"{Path(file).stem}.png"
+
+
+def true_masks_at(scan_root: Path, stone: Stone, width: int, files: Sequence[str]) -> dict[str, np.ndarray]:
+    """The true masks [H, W] bool of `files` at `width` pixels wide (a scan's training size), rendered with 16
+    samples a pixel where cameras.json says the rig really was (its steps, not the plan): masks/ holds them
+    only at the sensor's size, and a 0/1 mask cannot be averaged down."""
+    scan_root = Path(scan_root)
+    sensor = RigGeometry.from_dict(ScanFolder(scan_root).read_scan_json()["rig"])
+    world = World(stone, rig=sensor.scaled(width, round(sensor.height * width / sensor.width)))
+    where = {c["file"]: c for c in _read_cameras(_truth_paths(scan_root)[1])}
+    return {file: render(world, where[file]["elevation_deg"], where[file]["azimuth_deg"], stone_present=True,
+                         supersample=4).mask for file in files}
 
 
 def _camera_record(world: World, file: str, elevation_deg: float, azimuth_deg: float) -> dict:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +11,7 @@ from test_masks import iou, synthetic_pair
 from sim.rig import make_stone
 from sim.scene import World, render
 from sim.stone import procedural_stone
-from sim.truth import mask_path_for
+from sim.truth import mask_path_for, true_masks_at
 from station.cli_scan import run_sim_scan
 from station.errors import BadInputError
 from station.process.cross_view import CrossViewSettings, carve_hull, project_hull
@@ -77,15 +76,6 @@ def test_a_silhouette_of_the_wrong_size_is_refused() -> None:
         compute_mask(shot, plate, silhouette=truth[:-1])
 
 
-def true_masks_at(scan_root: Path, spec: str, width: int) -> dict[str, np.ndarray]:
-    """Each shot's true mask at the training width (16 samples a pixel), where sim_truth says the rig really was."""
-    sensor = RigGeometry.from_dict(ScanFolder(scan_root).read_scan_json()["rig"])
-    world = World(make_stone(spec), sensor.scaled(width, round(sensor.height * width / sensor.width)))
-    cameras = json.loads((scan_root / "sim_truth" / "cameras.json").read_text())["frames"]
-    return {c["file"]: render(world, c["elevation_deg"], c["azimuth_deg"], stone_present=True, supersample=4).mask
-            for c in cameras if "plate" not in c["file"]}
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(("sensor", "training_width"), [((320, 240), None), ((640, 480), 320)])
 def test_process_cuts_a_pale_stones_lowest_rings_again_from_the_rings_above(
@@ -97,13 +87,14 @@ def test_process_cuts_a_pale_stones_lowest_rings_again_from_the_rings_above(
     result = process_scan(tmp_path, ProcessSettings(training_width=training_width))
 
     scan = ScanFolder(tmp_path)
-    truth = true_masks_at(tmp_path, "pale:3", training_width) if training_width else None
+    shots = [frame for frame in result["develop"]["frames"] if frame["kind"] == "shot"]
+    files = [frame["file"] for frame in shots]
+    truth = (true_masks_at(tmp_path, make_stone("pale:3"), training_width, files) if training_width
+             else {file: read_mask_png(mask_path_for(tmp_path, file)) for file in files})
     by_ring: dict[float, list[float]] = {}
-    for frame in result["develop"]["frames"]:
-        if frame["kind"] == "shot":
-            mask = read_mask_png(scan.masks_dir / f"{Path(frame['file']).stem}.png")
-            true = truth[frame["file"]] if truth else read_mask_png(mask_path_for(tmp_path, frame["file"]))
-            by_ring.setdefault(frame["elevation_deg"], []).append(iou(mask, true))
+    for frame in shots:
+        mask = read_mask_png(scan.masks_dir / f"{Path(frame['file']).stem}.png")
+        by_ring.setdefault(frame["elevation_deg"], []).append(iou(mask, truth[frame["file"]]))
     lowest, *above = sorted(by_ring)
     assert np.mean(by_ring[lowest]) >= 0.95
     assert all(np.mean(by_ring[e]) >= 0.98 for e in above)
