@@ -32,9 +32,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from station.process.develop_stage import DevelopReport, ProcessSettings, flag_implausible_masks
-from station.process.images_io import read_exr, read_mask_png, write_mask_png, write_png16
-from station.process.masks import compute_matte
+from station.process.develop_stage import (
+    DevelopReport,
+    ProcessSettings,
+    flag_implausible_masks,
+    training_matte,
+    write_training_view,
+)
+from station.process.images_io import read_exr, read_mask_png
 from station.process.sfm import Intrinsics
 from station.process.transforms import read_transforms
 from station.process.visual_hull import carve_grid, grid_points, surface_voxels, view_bounds
@@ -141,11 +146,10 @@ def refine_masks_across_rings(
             if misses_deep_stone(masks[file], silhouette, settings) > settings.max_deep_missed:
                 shot = read_exr(scan.images_linear_dir / f"{stem}.exr")
                 if shot.shape[:2] != silhouette.shape:
-                    # cut at the developed resolution, as the first cut was, then averaged down to the poses'
+                    # cut at the developed resolution, as the first cut was (training_matte averages it down)
                     silhouette = project_hull(hull, posed[file], intr.scaled(shot.shape[1], shot.shape[0]))
-                matte = compute_matte(shot, plate, process.masks, silhouette).downscaled(intr.width)
-                write_png16(scan.images_dir / f"{stem}.png", matte.foreground)
-                write_mask_png(scan.masks_dir / f"{stem}.png", matte.alpha)
+                matte = training_matte(shot, plate, process, silhouette)
+                write_training_view(scan, stem, matte)
                 after = matte.mask
                 recut.append(Path(file).name)
                 changed.append(int((masks[file] != after).sum()))

@@ -27,7 +27,7 @@ from station.errors import BadInputError, ScanFolderError
 from station.process.colour import ChartNotFoundError, locate_and_fit_chart, white_balance_from_linear
 from station.process.develop import Developed, DevelopSettings, WhiteBalance, develop_raw
 from station.process.images_io import write_exr_half, write_mask_png, write_png16
-from station.process.masks import MaskCheckSettings, MaskSettings, check_masks, compute_matte
+from station.process.masks import MaskCheckSettings, MaskSettings, Matte, check_masks, compute_matte
 from station.scanfolder import ManifestEntry, ScanFolder
 
 
@@ -95,6 +95,21 @@ def flag_implausible_masks(
             report = reports[check.name]
             report.flags = [f for f in report.flags if not f.startswith("mask:")]
             report.flags += [f"mask: {reason}" for reason in check.reasons]
+
+
+def training_matte(
+    shot: np.ndarray, plate: np.ndarray, settings: ProcessSettings, silhouette: np.ndarray | None = None
+) -> Matte:
+    """The matte a developed shot trains with: cut at the developed resolution, then averaged down to the
+    training width (the first cut and the cut across rings alike)."""
+    matte = compute_matte(shot, plate, settings.masks, silhouette)
+    return matte if settings.training_width is None else matte.downscaled(settings.training_width)
+
+
+def write_training_view(scan: ScanFolder, stem: str, matte: Matte) -> None:
+    """images/<stem>.png (the stone's own colour) and masks/<stem>.png (its coverage) from a training matte."""
+    write_png16(scan.images_dir / f"{stem}.png", matte.foreground)
+    write_mask_png(scan.masks_dir / f"{stem}.png", matte.alpha)
 
 
 def _flag_names(flags: list[str]) -> set[str]:
@@ -186,13 +201,10 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
             report.flags.append(f"no_plate: none at {entry.elevation_deg} deg, masked against {plate_elev} deg")
         linear = frame.linear if correction is None else np.clip(frame.linear @ correction.T, 0.0, None)
         stem = Path(entry.file).stem
-        matte = compute_matte(linear, plate_linear[plate_elev], settings.masks)
-        if settings.training_width is not None:
-            matte = matte.downscaled(settings.training_width)
+        matte = training_matte(linear, plate_linear[plate_elev], settings)
         mask = matte.mask
-        write_png16(scan.images_dir / f"{stem}.png", matte.foreground)
+        write_training_view(scan, stem, matte)
         write_exr_half(scan.images_linear_dir / f"{stem}.exr", linear)
-        write_mask_png(scan.masks_dir / f"{stem}.png", matte.alpha)
         report.mask_area_fraction = float(mask.mean())
         rings.setdefault(entry.elevation_deg, []).append((entry.azimuth_deg, entry.file, mask))
 
