@@ -6,6 +6,7 @@ executor; what each test checks happens early, so only the cancel test reaches t
 
 from __future__ import annotations
 
+import json
 import shutil
 import threading
 import time
@@ -94,12 +95,12 @@ def test_the_safer_preset_halves_step_sizes_gaussian_budget_and_resolution():
     assert (safe.steps, safe.ngs) == (base.steps, base.ngs)
 
 
-def test_the_training_width_reaches_the_process_stage_and_is_part_of_its_key(queued):
+def test_the_training_width_reaches_the_process_stage_as_a_parameter_of_its_run(queued):
     store, scan = queued
     run_batch(store, replace(SETTINGS, training_width=80), LocalExecutor())
 
     images = sorted(ScanFolder(scan).images_dir.glob("*.png"))
     assert images and all(read_png16(path).shape[1] == 80 for path in images)  # the sensor is 160 wide
-    process = next(spec for spec in STAGES if spec.name == "process")
-    assert scan_stage_key(ScanFolder(scan), process, {"training_width": 80}, {}) != scan_stage_key(
-        ScanFolder(scan), process, {}, {})  # another width processes the scan again
+    job = store.get(scan)
+    started = [json.loads(e["detail"]) for e in store.stage_events(job.id) if (e["stage"], e["event"]) == ("process", "started")]
+    assert started and all(detail["training_width"] == 80 for detail in started)  # the params its key is made from
