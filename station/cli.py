@@ -11,13 +11,19 @@ import typer
 from station import __version__
 from station.cli_batch import batch_app
 from station.cli_serve import serve
-from station.cli_support import configure_logging, emit, err_console, exits_on_station_errors, parse_size, progress_reporter
+from station.cli_support import (
+    TRAINING_WIDTH_HELP,
+    configure_logging,
+    emit,
+    err_console,
+    exits_on_station_errors,
+    parse_size,
+    progress_reporter,
+)
 from station.errors import BadInputError
 
 DEMO_SENSOR = (640, 480)  # simulated sensor size for `station demo`: masks are cut at this size ...
 DEMO_TRAINING_WIDTH = 320  # ... and averaged down to the training images' (a camera finer than training)
-TRAINING_WIDTH_HELP = ("Width of the training images and masks, area-averaged from the masks cut on the developed raws; "
-                       "default: as developed.")
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Turntable capture-to-asset station.")
 

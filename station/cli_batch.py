@@ -12,7 +12,7 @@ from typing import List, Optional
 import typer
 
 from station.batch.store import Job, JobStore, StoreConfig
-from station.cli_support import configure_logging, emit, err_console, exits_on_station_errors
+from station.cli_support import TRAINING_WIDTH_HELP, configure_logging, emit, err_console, exits_on_station_errors
 from station.errors import BadInputError
 
 batch_app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -93,8 +93,7 @@ def run(
     forever: bool = typer.Option(False, "--forever", help="Keep waiting for new scans (--watch) instead of stopping when the queue is empty."),
     method: str = typer.Option("ngs", "--method", help="3dgs, alpha or ngs."),
     preset: str = typer.Option("fast", "--preset", help="Training preset (paper, fast, tiny)."),
-    training_width: Optional[int] = typer.Option(
-        None, "--training-width", min=1, help="Width of the training images and masks, averaged down from the developed raws."),
+    training_width: Optional[int] = typer.Option(None, "--training-width", min=1, help=TRAINING_WIDTH_HELP),
     lease: float = typer.Option(60.0, "--lease", min=1.0, help="Seconds a claimed scan stays leased without a heartbeat."),
     max_attempts: int = typer.Option(3, "--max-attempts", min=1, help="Attempts before an erring scan is parked."),
     backoff: float = typer.Option(30.0, "--backoff", min=0.0, help="Seconds before the first retry; doubled each time."),

@@ -16,6 +16,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from station.errors import BadInputError, StationError
 
 err_console = Console(stderr=True)
+TRAINING_WIDTH_HELP = ("Width of the training images and masks, area-averaged from the masks cut on the developed raws; "
+                       "default: as developed.")
 
 
 def exits_on_station_errors(command: Callable) -> Callable:
