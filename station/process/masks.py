@@ -109,6 +109,7 @@ class MaskSettings:
         field's gap too let a speckled stone's contact shadow in (lowest ring 0.988 -> 0.979).
         """
         factor = long_side / self.tuned_side
+        # the result is tuned for `long_side` itself, so applying it twice scales once
         return replace(self, seed_closing_px=max(1, round(self.seed_closing_px * factor)),
                        smoothness=self.smoothness * factor, tuned_side=long_side)
 
