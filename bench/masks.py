@@ -79,13 +79,14 @@ def grabcut_mask(shot: np.ndarray, plate: np.ndarray) -> np.ndarray:
 
 
 def stone_specs(names: str) -> list[str]:
-    """`make_stone` specs for a comma list of procedural looks and 'meshes' (the real meshes, when present)."""
+    """`make_stone` specs for a comma list of procedural looks (seed 3, or 'look:seed') and 'meshes' (the real
+    meshes, when present)."""
     specs = []
     for name in names.split(","):
         if name == "meshes":
             specs += [str(p) for p in sorted(SHARED_MESHES.glob("*.ply"))] if SHARED_MESHES.is_dir() else []
         else:
-            specs.append(f"{name}:3")
+            specs.append(name if ":" in name else f"{name}:3")
     return specs
 
 

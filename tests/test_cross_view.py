@@ -14,7 +14,7 @@ from sim.stone import procedural_stone
 from sim.truth import mask_path_for, true_masks_at
 from station.cli_scan import run_sim_scan
 from station.errors import BadInputError
-from station.process.cross_view import CrossViewSettings, carve_hull, project_hull
+from station.process.cross_view import CrossViewSettings, Hull, carve_hull, project_hull
 from station.process.develop_stage import ProcessSettings
 from station.process.images_io import read_mask_png
 from station.process.masks import compute_mask
@@ -52,6 +52,42 @@ def test_the_hull_stops_at_the_plate(rings) -> None:
     assert hull.surface[:, 2].min() >= -0.5 * hull.voxel[2]
     deep = carve_hull([c for c, _ in views], [m for _, m in views], INTRINSICS, CrossViewSettings(plate_z=None))
     assert deep.surface[:, 2].min() < -0.005
+
+
+def test_the_hull_below_its_untrusted_floor_is_left_out_of_the_silhouette(rings) -> None:
+    # seen only from above, the hull is a skirt down to the plate under the stone; from the lowest ring that
+    # skirt is false stone, so its lowest part is left out, and what that takes from the stone is little and low
+    views = rings[40.0] + rings[70.0]
+    hull = carve_hull([c for c, _ in views], [m for _, m in views], INTRINSICS, CrossViewSettings())
+    trusted = hull.above(CrossViewSettings().untrusted_floor)
+    floor = hull.surface[:, 2].min() + CrossViewSettings().untrusted_floor * np.ptp(hull.surface[:, 2])
+    assert trusted.surface[:, 2].min() >= floor
+    for c2w, truth in rings[10.0][::4]:
+        whole, part = project_hull(hull, c2w, INTRINSICS), project_hull(trusted, c2w, INTRINSICS)
+        assert (part & ~truth).sum() < 0.85 * (whole & ~truth).sum()
+        missed = truth & ~part
+        assert missed.sum() <= 0.02 * truth.sum()
+        rows = np.nonzero(truth.any(axis=1))[0]
+        assert not missed[: rows.min() + (rows.max() - rows.min()) // 3].any()  # nothing in the stone's top third
+
+
+def test_a_tolerant_hull_keeps_what_a_few_masks_lost(rings) -> None:
+    # a strict hull is only as good as its worst mask: two masks that lost the stone carve it away for all
+    views = rings[40.0] + rings[70.0]
+    c2ws, masks = [c for c, _ in views], [m for _, m in views]
+    masks[3] = masks[30] = np.zeros_like(masks[0])
+    assert len(carve_hull(c2ws, masks, INTRINSICS, CrossViewSettings()).surface) == 0
+    tolerant = carve_hull(c2ws, masks, INTRINSICS, CrossViewSettings(), missing_views=0.05)  # 2 of 48
+    for c2w, truth in rings[40.0][::6]:
+        assert iou(project_hull(tolerant, c2w, INTRINSICS), truth) >= 0.9
+
+
+def test_a_hull_with_nothing_to_leave_out_is_kept_whole() -> None:
+    hull = Hull(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.01]]), np.full(3, 0.001))
+    assert hull.above(0.0) is hull
+    empty = Hull(np.zeros((0, 3)), np.zeros(3))
+    assert hull.above(0.1).surface.tolist() == [[0.0, 0.0, 0.01]]
+    assert empty.above(0.1) is empty
 
 
 def test_masks_that_agree_on_nothing_give_an_empty_hull() -> None:

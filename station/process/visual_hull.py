@@ -60,11 +60,13 @@ def carve_grid(
     intr: Intrinsics,
     grid: np.ndarray,
     images: list[np.ndarray] | None = None,
+    max_misses: int = 0,
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Which `grid` points [N, 3] lie inside every mask that sees them [N] bool, and their mean colour [N, 3]
-    over the views (when `images` are given)."""
+    """Which `grid` points [N, 3] lie inside every mask that sees them, but for at most `max_misses` of those
+    masks [N] bool, and their mean colour [N, 3] over the views (when `images` are given)."""
     alive = np.arange(len(grid))  # voxels not yet carved away: each view only projects these
     seen_count = np.zeros(len(grid), dtype=np.int64)
+    misses = np.zeros(len(grid), dtype=np.int64)
     colour_sum = np.zeros((len(grid), 3)) if images is not None else None
     colour_n = np.zeros(len(grid))
     k = intr.matrix().astype(np.float32)
@@ -83,7 +85,8 @@ def carve_grid(
         if colour_sum is not None:
             colour_sum[alive[hit]] += images[i][v[hit], u[hit], :3]
             colour_n[alive[hit]] += 1
-        alive = alive[hit | ~seen]  # a voxel outside the frame is not evidence against it
+        misses[alive[seen & ~hit]] += 1
+        alive = alive[misses[alive] <= max_misses]  # a voxel outside the frame is not evidence against it
     inside = np.zeros(len(grid), dtype=bool)
     inside[alive] = True
     inside &= seen_count >= max(2, len(c2ws) // 2)  # ...but a voxel few views see is not evidence for it
