@@ -17,9 +17,9 @@ and 7) that kept their lowest rings at 0.916 and 0.876. With the tolerant hull: 
 
 The hull is trusted only above its lowest tenth. No other ring sees under the stone, so there the hull
 is a skirt down to the plate, wider than the stone; from the lowest ring it lay over the contact shadow,
-and the cut took the shadow in. Every view of a speckled stone's lowest ring cut again scored 0.9775
-with the whole hull and 0.9850 without its floor, where the first cut had 0.9868; the pale stone's
-rose from 0.9792 to 0.9826 (640x480 averaged to 320x240).
+and the cut took the shadow in. Every view of a speckled stone's lowest ring cut again (with the strict
+hull, before the tolerant one above) scored 0.9775 with the whole hull and 0.9850 without its floor,
+where the first cut had 0.9868; the pale stone's rose from 0.9792 to 0.9826 (640x480 averaged to 320x240).
 
 Only views that need it are cut again: those whose own mask calls background more than 0.2 % of the
 deep part (farther inside than 3 % of its size) of the strict hull's silhouette, the stone every other

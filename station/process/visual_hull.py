@@ -85,8 +85,12 @@ def carve_grid(
         if colour_sum is not None:
             colour_sum[alive[hit]] += images[i][v[hit], u[hit], :3]
             colour_n[alive[hit]] += 1
-        misses[alive[seen & ~hit]] += 1
-        alive = alive[misses[alive] <= max_misses]  # a voxel outside the frame is not evidence against it
+        missed = seen & ~hit  # a voxel outside the frame is not evidence against it
+        missed_ids = alive[missed]
+        misses[missed_ids] += 1
+        keep = ~missed
+        keep[missed] = misses[missed_ids] <= max_misses  # only the voxels this view missed can drop out
+        alive = alive[keep]
     inside = np.zeros(len(grid), dtype=bool)
     inside[alive] = True
     inside &= seen_count >= max(2, len(c2ws) // 2)  # ...but a voxel few views see is not evidence for it
