@@ -104,6 +104,21 @@ def test_a_predicted_silhouette_recovers_a_shaded_side_the_shot_alone_loses() ->
     assert iou(compute_mask(shot, plate, silhouette=predicted), truth) >= 0.98
 
 
+def test_a_predicted_silhouette_that_reaches_above_a_pale_stone_leaves_the_backdrop_there_out() -> None:
+    # seen from the lowest ring, the other rings' hull roofs a flat-topped stone: its silhouette reaches a few
+    # rows above the stone, over backdrop as pale as the stone
+    shot, plate, truth = synthetic_pair("pale", shading=0.15)
+    rows = np.nonzero(truth)[0]
+    upper_half = np.arange(truth.shape[0])[:, None] < (rows.min() + rows.max()) // 2
+    roofed = truth.copy()
+    for lift in range(1, 7):
+        roofed |= np.roll(truth, -lift, axis=0) & upper_half
+    roof = roofed & ~truth
+    mask = compute_mask(shot, plate, silhouette=roofed)
+    assert (mask & roof).sum() <= 0.05 * roof.sum()
+    assert iou(mask, truth) >= 0.98
+
+
 def test_a_silhouette_of_the_wrong_size_is_refused() -> None:
     shot, plate, truth = synthetic_pair("dark")
     with pytest.raises(BadInputError, match="silhouette"):

@@ -82,10 +82,14 @@ class MaskSettings:
     colour_floor: float = 1e-3  # density any colour keeps under the stone model (unseen grains, highlights)
     hull_prior_nats: float = 3.0  # bonus for stone inside the seed hull
     # The stone's silhouette as the other rings predict it (cross_view.py): stone inside it is worth these nats,
-    # short of a band on its edge, where the prediction is itself a pixel out and the shot alone decides. On a
-    # pale stone's lowest ring, every view cut again (IoU against the truth): 5 nats 0.969, 10 nats 0.963 (more
-    # false stone); 3 nats took back less of the shaded side than 10 in a first trial on 10 of its views.
-    silhouette_prior_nats: float = 5.0
+    # short of a band on its edge, where the prediction is itself a pixel out and the shot alone decides. The
+    # silhouette also joins the seed, worth `hull_prior_nats` more. Seen from the lowest ring, the other rings'
+    # hull has a roof over a flat-topped stone (none of them looks as low), and the backdrop under that roof is
+    # as pale as a pale stone: at 5 nats the cut took it in. Lowest rings cut again, 640x480 averaged to 320
+    # (bench/cross_view.py), 5 -> 2 nats: pale seeds 3, 5, 7 0.979 -> 0.984, 0.966 -> 0.981, 0.981 -> 0.979;
+    # speckled 0.983 -> 0.987, grey 0.980 -> 0.986, dark 0.996 -> 0.997. Pale 5's lowest ring at 1, 2.5 and 3
+    # nats: 0.981, 0.978, 0.974; pale 7's at 2.5: 0.9805. Where the hull's top is tight, more prior would help.
+    silhouette_prior_nats: float = 2.0
     silhouette_band_px: int = 1
     smoothness: float = 9.0  # nats per unit boundary length across a flat (edgeless) region
     contrast_blur_px: float = 1.0  # the smoothness term reads edges on a lightly denoised difference
