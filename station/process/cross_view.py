@@ -167,11 +167,14 @@ def refine_masks_across_rings(
             summary.append({"elevation_deg": elevation, "views": len(own), "skipped": f"{len(others)} views on other rings"})
             continue
         views, their_masks = [posed[f] for f in others], [masks[f] for f in others]
-        agreed = carve_hull(views, their_masks, intr, settings)
+
+        def trusted_hull(missing_views: float) -> Hull:
+            return carve_hull(views, their_masks, intr, settings, missing_views).above(settings.untrusted_floor)
+
+        agreed = trusted_hull(0.0)
         if len(agreed.surface) == 0:
             summary.append({"elevation_deg": elevation, "views": len(own), "skipped": "the other rings' hull is empty"})
             continue
-        agreed = agreed.above(settings.untrusted_floor)
         tolerant: Hull | None = None  # carved when a view first needs it
         plate = read_exr(scan.images_linear_dir / f"{develop.plate_for(elevation)}.exr")
         recut, changed = [], []
@@ -181,8 +184,7 @@ def refine_masks_across_rings(
             after = masks[file]
             if misses_deep_stone(masks[file], silhouette, settings) > settings.max_deep_missed:
                 if tolerant is None:
-                    tolerant = carve_hull(views, their_masks, intr, settings, settings.max_missing_views)
-                    tolerant = tolerant.above(settings.untrusted_floor)
+                    tolerant = trusted_hull(settings.max_missing_views)
                 shot = read_exr(scan.images_linear_dir / f"{stem}.exr")
                 # cut at the developed resolution, as the first cut was (training_matte averages it down)
                 silhouette = project_hull(tolerant, posed[file], intr.scaled(shot.shape[1], shot.shape[0]))

@@ -87,8 +87,9 @@ class MaskSettings:
     # hull has a roof over a flat-topped stone (none of them looks as low), and the backdrop under that roof is
     # as pale as a pale stone: at 5 nats the cut took it in. Lowest rings cut again, 640x480 averaged to 320
     # (bench/cross_view.py), 5 -> 2 nats: pale seeds 3, 5, 7 0.979 -> 0.984, 0.966 -> 0.981, 0.981 -> 0.979;
-    # speckled 0.983 -> 0.987, grey 0.980 -> 0.986, dark 0.996 -> 0.997. Pale 5's lowest ring at 1, 2.5 and 3
-    # nats: 0.981, 0.978, 0.974; pale 7's at 2.5: 0.9805. Where the hull's top is tight, more prior would help.
+    # speckled 0.983 -> 0.987, grey 0.980 -> 0.986, dark 0.996 -> 0.997. The lowest ring alone cut again from
+    # its first cut (not the bench): pale 5 at 1, 2.5 and 3 nats 0.981, 0.978, 0.974, pale 7 at 2.5 0.9805.
+    # Where the hull's top is tight, as on pale 7, more prior would help.
     silhouette_prior_nats: float = 2.0
     silhouette_band_px: int = 1
     smoothness: float = 9.0  # nats per unit boundary length across a flat (edgeless) region
