@@ -14,7 +14,7 @@ from sim.stone import procedural_stone
 from sim.truth import mask_path_for, true_masks_at
 from station.cli_scan import run_sim_scan
 from station.errors import BadInputError
-from station.process.cross_view import CrossViewSettings, Hull, carve_hull, project_hull
+from station.process.cross_view import CrossViewSettings, Hull, carve_hull, project_hull, roofed_part
 from station.process.develop_stage import ProcessSettings
 from station.process.images_io import read_mask_png
 from station.process.masks import compute_mask
@@ -104,25 +104,50 @@ def test_a_predicted_silhouette_recovers_a_shaded_side_the_shot_alone_loses() ->
     assert iou(compute_mask(shot, plate, silhouette=predicted), truth) >= 0.98
 
 
-def test_a_predicted_silhouette_that_reaches_above_a_pale_stone_leaves_the_backdrop_there_out() -> None:
+def test_only_the_edges_that_face_up_more_steeply_than_the_hulls_views_see_edge_on_may_be_roof(rings) -> None:
+    # seen from 10 degrees, a hull carved from 40 and 70 degrees is untested where the stone faces up by more
+    # than 50 degrees: its silhouette's top; its sides and bottom are edges the views above saw edge-on
+    views = rings[40.0] + rings[70.0]
+    hull = carve_hull([c for c, _ in views], [m for _, m in views], INTRINSICS, CrossViewSettings())
+    for c2w, _ in rings[10.0][::6]:
+        silhouette = project_hull(hull, c2w, INTRINSICS)
+        roofed = roofed_part(silhouette, c2w, np.radians(40.0))
+        rows, columns = np.nonzero(silhouette)
+        top, bottom, left, right = rows.min(), rows.max(), columns.min(), columns.max()
+        assert roofed[top].any() and 0.02 < roofed.sum() / silhouette.sum() < 0.5
+        assert np.nonzero(roofed)[0].max() < top + 0.75 * (bottom - top)  # the lowest quarter keeps its full prior
+        assert not roofed[bottom].any() and not roofed[:, left].any() and not roofed[:, right].any()
+        assert not roofed_part(silhouette, c2w, np.radians(10.0)).any()  # a hull from views as low as this one
+    views = rings[10.0] + rings[70.0]
+    hull = carve_hull([c for c, _ in views], [m for _, m in views], INTRINSICS, CrossViewSettings())
+    for c2w, _ in rings[40.0][::6]:
+        assert not roofed_part(project_hull(hull, c2w, INTRINSICS), c2w, np.radians(10.0)).any()
+
+
+def test_the_roofed_part_of_a_silhouette_over_a_pale_stone_weighs_too_little_to_take_in_the_backdrop() -> None:
     # seen from the lowest ring, the other rings' hull roofs a flat-topped stone: its silhouette reaches a few
-    # rows above the stone, over backdrop as pale as the stone
+    # rows above the stone, over backdrop as pale as the stone; roofed_part marks the top of such a silhouette
     shot, plate, truth = synthetic_pair("pale", shading=0.15)
     rows = np.nonzero(truth)[0]
     upper_half = np.arange(truth.shape[0])[:, None] < (rows.min() + rows.max()) // 2
-    roofed = truth.copy()
+    silhouette = truth.copy()
     for lift in range(1, 7):
-        roofed |= np.roll(truth, -lift, axis=0) & upper_half
-    roof = roofed & ~truth
-    mask = compute_mask(shot, plate, silhouette=roofed)
-    assert (mask & roof).sum() <= 0.05 * roof.sum()
+        silhouette |= np.roll(truth, -lift, axis=0) & upper_half
+    roof = silhouette & ~truth
+    roofed = silhouette & (np.arange(truth.shape[0])[:, None] < rows.min() + 12)
+    mask = compute_mask(shot, plate, silhouette=silhouette, roofed=roofed)
+    assert (mask & roof & roofed).sum() <= 0.05 * (roof & roofed).sum()
     assert iou(mask, truth) >= 0.98
+    trusting_the_roof = compute_mask(shot, plate, silhouette=silhouette)  # the full prior everywhere
+    assert (trusting_the_roof & roof & roofed).sum() >= 0.5 * (roof & roofed).sum()  # measured: 495 of 526, and 0
 
 
-def test_a_silhouette_of_the_wrong_size_is_refused() -> None:
+def test_a_silhouette_or_roofed_part_of_the_wrong_size_is_refused() -> None:
     shot, plate, truth = synthetic_pair("dark")
     with pytest.raises(BadInputError, match="silhouette"):
         compute_mask(shot, plate, silhouette=truth[:-1])
+    with pytest.raises(BadInputError, match="roofed part"):
+        compute_mask(shot, plate, silhouette=truth, roofed=truth[:, :-1])
 
 
 @pytest.mark.slow

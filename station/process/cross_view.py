@@ -16,7 +16,12 @@ ring above the lowest can lose the same shaded side in view after view: on two m
 and 7) that kept their lowest rings at 0.916 and 0.876. With the tolerant hull: 0.966 and 0.981, and 0.981
 and 0.979 once the silhouette's prior fell from 5 nats to 2 (masks.MaskSettings.silhouette_prior_nats): seen
 from the lowest ring the hull has a roof over a flat-topped stone, since no other ring looks as low, and the
-stronger prior took in the pale backdrop under it.
+stronger prior took in the pale backdrop under it. The prior is now 4 nats, and 1 on the part of the silhouette
+that may be roof (`roofed_part`: nearest to an edge that faces up more steeply than the hull's views see
+edge-on). The whole cut across rings from the same first cuts, lowest ring and the one above: pale seeds 3, 5, 7
+0.9837, 0.9809, 0.9792 -> 0.9844, 0.9851, 0.9807 (e1 0.9902, 0.9843, 0.9840 -> 0.9903, 0.9853, 0.9873); the
+stones the shot alone masks well lose a little more to their re-cut views: speckled 0.9865 -> 0.9837, grey
+0.9861 -> 0.9813, dark 0.9969 -> 0.9963.
 
 The hull is trusted only above its lowest tenth. No other ring sees under the stone, so there the hull
 is a skirt down to the plate, wider than the stone; from the lowest ring it lay over the contact shadow,
@@ -44,6 +49,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from station.process.develop_stage import (
     DevelopReport,
@@ -120,7 +126,8 @@ def carve_hull(
 
 
 def project_hull(hull: Hull, c2w: np.ndarray, intr: Intrinsics) -> np.ndarray:
-    """The hull's silhouette [H, W] bool in a view: each surface voxel drawn as 2x2x2 points across its cell."""
+    """The hull's silhouette [H, W] bool in a view: each surface voxel drawn as 2x2x2 points across its cell,
+    holes filled (a solid's silhouette has none; drawn points leave pinholes where the surface is seen face-on)."""
     silhouette = np.zeros((intr.height, intr.width), dtype=bool)
     w2c = np.linalg.inv(c2w)
     k = intr.matrix()
@@ -133,7 +140,43 @@ def project_hull(hull: Hull, c2w: np.ndarray, intr: Intrinsics) -> np.ndarray:
         v = np.floor(uvw[:, 1] / uvw[:, 2]).astype(np.int64)
         ok = (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
         silhouette[v[ok], u[ok]] = True
-    return silhouette
+    return ndimage.binary_fill_holes(silhouette)
+
+
+def looking_down(c2w: np.ndarray) -> float:
+    """How far (radians) a camera's optical axis looks down from the horizontal (OpenCV camera, z up)."""
+    return float(np.arcsin(np.clip(-c2w[2, 2], -1.0, 1.0)))
+
+
+def roofed_part(silhouette: np.ndarray, c2w: np.ndarray, hull_views_down: float) -> np.ndarray:
+    """The part [H, W] bool of a hull's silhouette in a view that may be a roof over the stone, not the stone.
+
+    A visual hull is only tight where one of its views saw the surface edge-on, and a view that looks down by
+    `hull_views_down` (the shallowest of them) sees edge-on no surface that faces up more steeply than that angle
+    from the vertical: over the flat top of a stone the hull is a tent of the views' cones. In a view that looks
+    down by d, an edge of the silhouette whose outward normal is at angle a from the image's up comes from surface
+    that faces up by asin(cos a cos d). The tent's own faces face up no more steeply than the limit, so edges
+    beyond it appear where those faces meet, at the tent's peaks, which no view pins down. The part returned is
+    every pixel of the silhouette whose nearest edge pixel is such an edge: a wedge under each peak. It is empty
+    when this view looks down more steeply than the hull's views. Widening the limit by 5 or 10 degrees, to take
+    in the tent's steepest faces, marked 1.4 and 1.8 times as much and did no better (pale seeds 5 and 7, lowest
+    ring: 0.9851, 0.9807 at the limit; 0.9837, 0.9798 at 10 degrees).
+    """
+    limit = np.cos(hull_views_down) / np.cos(looking_down(c2w))
+    if limit >= 1.0 or not silhouette.any():
+        return np.zeros_like(silhouette, dtype=bool)
+    up = c2w[:3, :3].T @ np.array([0.0, 0.0, 1.0])  # the world's up in camera coordinates (x right, y down)
+    up_in_image = up[:2] / max(float(np.linalg.norm(up[:2])), 1e-12)
+    inside = silhouette.astype(np.uint8)
+    edge = silhouette & ~cv2.erode(inside, np.ones((3, 3), np.uint8)).astype(bool)
+    smooth = cv2.GaussianBlur(inside.astype(np.float32), (0, 0), 2.0)  # the edge's direction over a few pixels
+    gx, gy = cv2.Sobel(smooth, cv2.CV_32F, 1, 0), cv2.Sobel(smooth, cv2.CV_32F, 0, 1)
+    facing_up = -(gx * up_in_image[0] + gy * up_in_image[1]) / np.maximum(np.hypot(gx, gy), 1e-9)  # cos a
+    _, nearest = cv2.distanceTransformWithLabels((~edge).astype(np.uint8), cv2.DIST_L2, 5,
+                                                 labelType=cv2.DIST_LABEL_PIXEL)
+    roof_label = np.zeros(nearest.max() + 1, dtype=bool)
+    roof_label[nearest[edge]] = facing_up[edge] > limit
+    return silhouette & roof_label[nearest]
 
 
 def misses_deep_stone(mask: np.ndarray, silhouette: np.ndarray, settings: CrossViewSettings) -> float:
@@ -167,6 +210,7 @@ def refine_masks_across_rings(
             summary.append({"elevation_deg": elevation, "views": len(own), "skipped": f"{len(others)} views on other rings"})
             continue
         views, their_masks = [posed[f] for f in others], [masks[f] for f in others]
+        hull_views_down = min(looking_down(c2w) for c2w in views)
 
         def trusted_hull(missing_views: float) -> Hull:
             return carve_hull(views, their_masks, intr, settings, missing_views).above(settings.untrusted_floor)
@@ -188,7 +232,8 @@ def refine_masks_across_rings(
                 shot = read_exr(scan.images_linear_dir / f"{stem}.exr")
                 # cut at the developed resolution, as the first cut was (training_matte averages it down)
                 silhouette = project_hull(tolerant, posed[file], intr.scaled(shot.shape[1], shot.shape[0]))
-                matte = training_matte(shot, plate, process, silhouette)
+                roofed = roofed_part(silhouette, posed[file], hull_views_down)
+                matte = training_matte(shot, plate, process, silhouette, roofed)
                 write_training_view(scan, stem, matte)
                 after = matte.mask
                 recut.append(Path(file).name)

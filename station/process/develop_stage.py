@@ -98,11 +98,12 @@ def flag_implausible_masks(
 
 
 def training_matte(
-    shot: np.ndarray, plate: np.ndarray, settings: ProcessSettings, silhouette: np.ndarray | None = None
+    shot: np.ndarray, plate: np.ndarray, settings: ProcessSettings,
+    silhouette: np.ndarray | None = None, roofed: np.ndarray | None = None,
 ) -> Matte:
     """The matte a developed shot trains with: cut at the developed resolution, then averaged down to the
     training width (the first cut and the cut across rings alike)."""
-    matte = compute_matte(shot, plate, settings.masks, silhouette)
+    matte = compute_matte(shot, plate, settings.masks, silhouette, roofed)
     return matte if settings.training_width is None else matte.downscaled(settings.training_width)
 
 

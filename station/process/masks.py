@@ -83,14 +83,14 @@ class MaskSettings:
     hull_prior_nats: float = 3.0  # bonus for stone inside the seed hull
     # The stone's silhouette as the other rings predict it (cross_view.py): stone inside it is worth these nats,
     # short of a band on its edge, where the prediction is itself a pixel out and the shot alone decides. The
-    # silhouette also joins the seed, worth `hull_prior_nats` more. Seen from the lowest ring, the other rings'
-    # hull has a roof over a flat-topped stone (none of them looks as low), and the backdrop under that roof is
-    # as pale as a pale stone: at 5 nats the cut took it in. Lowest rings cut again, 640x480 averaged to 320
-    # (bench/cross_view.py), 5 -> 2 nats: pale seeds 3, 5, 7 0.979 -> 0.984, 0.966 -> 0.981, 0.981 -> 0.979;
-    # speckled 0.983 -> 0.987, grey 0.980 -> 0.986, dark 0.996 -> 0.997. The lowest ring alone cut again from
-    # its first cut (not the bench): pale 5 at 1, 2.5 and 3 nats 0.981, 0.978, 0.974, pale 7 at 2.5 0.9805.
-    # Where the hull's top is tight, as on pale 7, more prior would help.
-    silhouette_prior_nats: float = 2.0
+    # silhouette also joins the seed, worth `hull_prior_nats` more. Where the silhouette may be a roof over the
+    # stone (cross_view.roofed_part: its edge faces up more steeply than the other rings see edge-on), stone is
+    # worth only `roof_prior_nats`: under a roof over a flat-topped pale stone lies backdrop as pale as the stone,
+    # and a strong prior took it in. Lowest rings cut again from their first cut (640x480 averaged to 320, all 40
+    # views), pale seeds 5 and 7: one prior of 2 nats 0.981, 0.979; 5 nats 0.966, 0.981; 4 nats with 1 on the
+    # roof 0.985, 0.981; 5 with 0 on the roof and the roof out of the seed, 0.984, 0.973 (pale 7's top needs it).
+    silhouette_prior_nats: float = 4.0
+    roof_prior_nats: float = 1.0
     silhouette_band_px: int = 1
     smoothness: float = 9.0  # nats per unit boundary length across a flat (edgeless) region
     contrast_blur_px: float = 1.0  # the smoothness term reads edges on a lightly denoised difference
@@ -386,15 +386,19 @@ def matte_boundary(
     return np.where(readable, np.clip(alpha, 0.0, 1.0), stone).astype(np.float32)
 
 
-def silhouette_prior(silhouette: np.ndarray, settings: MaskSettings) -> np.ndarray:
+def silhouette_prior(silhouette: np.ndarray, settings: MaskSettings, roofed: np.ndarray | None = None) -> np.ndarray:
     """Evidence [H, W] in nats for stone inside a predicted silhouette, short of its edge band; 0 elsewhere.
+    Inside its `roofed` part [H, W] bool, if given, the weaker `roof_prior_nats`.
 
     Only for stone: the other rings' hull can miss what their own masks missed, so it never argues for
     background.
     """
     band = np.ones((2 * settings.silhouette_band_px + 1,) * 2, np.uint8)
-    inner = cv2.erode(silhouette.astype(np.uint8), band)
-    return settings.silhouette_prior_nats * inner.astype(np.float32)
+    inner = cv2.erode(silhouette.astype(np.uint8), band).astype(bool)
+    nats = np.full(silhouette.shape, settings.silhouette_prior_nats, dtype=np.float32)
+    if roofed is not None:
+        nats[roofed] = settings.roof_prior_nats
+    return np.where(inner, nats, 0.0).astype(np.float32)
 
 
 def refine_graph_cut(
@@ -529,18 +533,21 @@ def compute_matte(
     plate_linear: np.ndarray,
     settings: MaskSettings = MaskSettings(),
     silhouette: np.ndarray | None = None,
+    roofed: np.ndarray | None = None,
 ) -> Matte:
     """Mask, coverage and unmixed colour of a developed shot against the clean plate of the same elevation.
 
     `silhouette` [H, W] bool, when given, is where other views put the stone (cross_view.py): it joins the
-    seed, so the stone's colour model also learns the stone's shaded side, and it weighs in the cut.
+    seed, so the stone's colour model also learns the stone's shaded side, and it weighs in the cut. Its
+    `roofed` part [H, W] bool, when given, may be a roof over the stone and weighs less (`roof_prior_nats`).
     """
     if shot_linear.shape != plate_linear.shape or shot_linear.ndim != 3 or shot_linear.shape[2] != 3:
         raise BadInputError(
             f"shot {shot_linear.shape} and plate {plate_linear.shape} must be matching [H, W, 3] images"
         )
-    if silhouette is not None and silhouette.shape != shot_linear.shape[:2]:
-        raise BadInputError(f"silhouette {silhouette.shape} does not match the shot {shot_linear.shape[:2]}")
+    for name, region in (("silhouette", silhouette), ("roofed part", roofed)):
+        if region is not None and region.shape != shot_linear.shape[:2]:
+            raise BadInputError(f"{name} {region.shape} does not match the shot {shot_linear.shape[:2]}")
     full_shot, plate = shot_linear.astype(np.float32), plate_linear.astype(np.float32)
     h, w = full_shot.shape[:2]
     scale = settings.max_working_side / max(h, w)
@@ -553,8 +560,12 @@ def compute_matte(
     seed, prior = seed_mask(shot, plate, settings), None
     if silhouette is not None:
         if scale < 1.0:
-            silhouette = cv2.resize(silhouette.astype(np.uint8), shot.shape[1::-1], interpolation=cv2.INTER_NEAREST)
-        seed, prior = seed | silhouette.astype(bool), silhouette_prior(silhouette, settings)
+            def at_working_size(region: np.ndarray) -> np.ndarray:
+                return cv2.resize(region.astype(np.uint8), shot.shape[1::-1], interpolation=cv2.INTER_NEAREST).astype(bool)
+
+            silhouette = at_working_size(silhouette)
+            roofed = None if roofed is None else at_working_size(roofed)
+        seed, prior = seed | silhouette.astype(bool), silhouette_prior(silhouette, settings, roofed)
     coverage, background = refine_graph_cut(shot, plate, seed, settings, prior)
     if scale < 1.0:
         coverage, background = (cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR)
@@ -571,9 +582,10 @@ def compute_mask(
     plate_linear: np.ndarray,
     settings: MaskSettings = MaskSettings(),
     silhouette: np.ndarray | None = None,
+    roofed: np.ndarray | None = None,
 ) -> np.ndarray:
     """Stone mask [H, W] bool for a developed shot and the clean plate of the same elevation."""
-    return compute_matte(shot_linear, plate_linear, settings, silhouette).mask
+    return compute_matte(shot_linear, plate_linear, settings, silhouette, roofed).mask
 
 
 def check_masks(
