@@ -29,9 +29,9 @@ import numba  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from station.ngs.conventions import rgb_to_sh  # noqa: E402
 from station.ngs.raster import rasterization, set_num_threads  # noqa: E402
 
-SH_C0 = 0.28209479177387814
 REFERENCE_LIMIT = 2_000 * 128 * 128  # Gaussians x pixels beyond which the dense reference is skipped
 
 
@@ -41,7 +41,7 @@ def bench_scene(n: int, width: int, height: int, sh_degree: int = 3, seed: int =
     spacing = (8.0 / n) ** (1.0 / 3.0)
     quats = torch.randn(n, 4, generator=g)
     sh = 0.1 * torch.randn(n, (sh_degree + 1) ** 2, 3, generator=g)
-    sh[:, 0] = (torch.rand(n, 3, generator=g) - 0.5) / SH_C0
+    sh[:, 0] = rgb_to_sh(torch.rand(n, 3, generator=g))
     viewmat = torch.eye(4)
     viewmat[2, 3] = 4.0
     return {

@@ -29,7 +29,8 @@ from station.export.splat_formats import read_splat
 from station.export.splat_model import matrix_to_quat
 from station.export.spz import read_spz
 from station.export.stage import ExportConfig, ExportReport, export_scan, splat_model_of
-from station.ngs.gaussians import Gaussians, rgb_to_sh
+from station.ngs.conventions import rgb_to_sh
+from station.ngs.gaussians import Gaussians
 from station.ngs.infill import Camera, InfillConfig, build_infill
 from station.ngs.raster import rasterization
 from station.process.images_io import srgb_to_linear, write_mask_png, write_png16

@@ -11,7 +11,8 @@ import torch
 
 from station.errors import BadInputError
 from station.ngs.dataset import View
-from station.ngs.gaussians import Gaussians, rgb_to_sh
+from station.ngs.conventions import rgb_to_sh
+from station.ngs.gaussians import Gaussians
 from station.ngs.infill import Infill, InfillConfig, build_infill
 from station.ngs.inria_ply import read_inria_ply
 from station.ngs.raster import rasterization

@@ -21,9 +21,8 @@ class GateConfig:
     min_psnr: float = 28.0  # dB on held-out views
     min_ssim: float = 0.9  # skimage SSIM, Gaussian window sigma 1.5, on held-out views
     # (mesh volume - infill volume) / mesh volume. The infill sits a margin below the surface: after its
-    # erosion is grown back it still misses the surface layer and what depth pruning removed (22 % of the
-    # demo stone's accurate mesh). More than this and the mesh holds far more than its inside, below zero
-    # and the inside pokes out through the surface.
+    # erosion is grown back it still misses the surface layer and what depth pruning removed. More than
+    # this and the mesh holds far more than its inside, below zero and the inside pokes out through the surface.
     max_volume_mismatch: float = 0.35
     max_infill_excess: float = 0.05
     max_outside_hull_fraction: float = 0.01  # Gaussians outside the masks' visual hull

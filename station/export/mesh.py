@@ -3,7 +3,7 @@
 The surface is the 0.5 level set of the splat's own opacity field (station.export.opacity_field):
 where the Gaussians, as the rasteriser composites them, turn opaque. The alternative (`surface =
 "tsdf"`) fuses rendered median-depth maps into a TSDF; it reports Gaussian centres, which lie about
-one Gaussian scale inside the visible boundary, so its meshes came out 15 % small on the demo stone.
+one Gaussian scale inside the visible boundary, so its meshes come out small (bench/mesh.py).
 Neither closes the stone alone: the turntable sees the upper hemisphere only and never the bottom.
 So the NGS infill occupancy fills whatever the surface leaves open inside (a TSDF knows only a band
 around the seen surface), the turntable plane z=0 is a cut (the stone sits on the plate: below it
@@ -185,7 +185,7 @@ def extract_mesh(field: np.ndarray, grid: VoxelGrid, config: MeshConfig) -> trim
         trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=config.taubin_iterations)
     if len(mesh.faces) > config.target_faces:
         # Low aggressiveness: at the default (7) collapses fold thin parts into edges shared by
-        # four faces, which breaks watertightness; at 2 the stones we measured stay closed.
+        # four faces, which breaks watertightness; at 2 they stay closed.
         v, f = fast_simplification.simplify(
             mesh.vertices.astype(np.float64), mesh.faces.astype(np.int64), target_count=config.target_faces, agg=2
         )
@@ -281,7 +281,7 @@ def render_depth_maps(
     model: SplatModel, c2ws: np.ndarray, Ks: np.ndarray, width: int, height: int, config: MeshConfig
 ) -> np.ndarray:
     """Depth maps [V, H, W] of the splats for `tsdf_fuse`: the median depth (where alpha reaches 0.5,
-    on the first opaque layer; expected depth lies ~1.4 mm behind it) where the pixel is opaque, +inf
+    on the first opaque layer; expected depth lies about one Gaussian scale behind it) where the pixel is opaque, +inf
     where it sees through, NaN on the soft silhouette in between."""
     import torch
 

@@ -2,10 +2,9 @@
 
 Each Gaussian's opacity at a point x is min(o exp(-(x-mu)^T Sigma^-1 (x-mu) / 2), 0.99), the value the
 rasteriser composites where its ray passes through x; the field is 1 - prod(1 - alpha_i(x)). Its
-0.5 level set is where the splat turns opaque, as in Gaussian Opacity Fields. Rendered depth,
-expected or median, reports Gaussian centres, and on the demo stone those lie 1.3 mm (one
-Gaussian scale) inside the visible boundary: on that stone the TSDF of median depth reached
-Chamfer-L1 1.15 % of the bounding-box diagonal and volume -14.8 %, the level set 0.31 % and +3.1 %.
+0.5 level set is where the splat turns opaque, as in Gaussian Opacity Fields. It is the mesher's
+default because rendered depth, expected or median, reports Gaussian centres, which sit about one
+Gaussian scale inside the visible boundary (bench/mesh.py compares the two).
 """
 
 from __future__ import annotations
@@ -16,9 +15,8 @@ import numpy as np
 from numba import njit, prange
 
 from station.export.splat_model import SplatModel
+from station.ngs.conventions import ALPHA_MAX, ALPHA_MIN
 
-ALPHA_MAX = 0.99
-ALPHA_MIN = 1.0 / 255.0
 LOWPASS_VOXELS = 0.3  # std. dev. added to every Gaussian, in voxels
 
 
@@ -67,13 +65,12 @@ def opacity_field(model: SplatModel, origin: np.ndarray, voxel: float, shape: tu
     opacity = model.opacity().astype(np.float64)
     # The grid samples the field at voxel centres: a Gaussian thinner than a voxel (a flat disc on the
     # surface) would slip between them. Widening each by 0.3 voxel, as the rasteriser's 0.3 px
-    # low-pass does on screen, keeps it visible to the grid; on the demo stone it costs 0.4 % of
-    # volume (+3.1 % against +2.7 % unwidened), half a voxel costs 1.1 %.
+    # low-pass does on screen, keeps it visible to the grid at a small cost in volume.
     scales = np.sqrt(np.exp(2.0 * model.scales_log.astype(np.float64)) + (LOWPASS_VOXELS * voxel) ** 2)
-    visible = opacity * 255.0 > 1.0  # a Gaussian below 1/255 everywhere adds nothing
+    visible = opacity > ALPHA_MIN  # a Gaussian below ALPHA_MIN everywhere adds nothing
     opacity, scales = opacity[visible], scales[visible]
-    # alpha falls to 1/255 at Mahalanobis radius sqrt(2 ln(255 o)); the largest axis bounds it in space
-    reach = scales.max(axis=1) * np.sqrt(2.0 * np.log(255.0 * opacity))
+    # alpha falls to ALPHA_MIN at Mahalanobis radius sqrt(2 ln(o / ALPHA_MIN)); the largest axis bounds it in space
+    reach = scales.max(axis=1) * np.sqrt(2.0 * np.log(opacity / ALPHA_MIN))
     log_t = _log_transmittance(model.means[visible].astype(np.float64),
                                inverse_covariances(scales, model.quats[visible].astype(np.float64)),
                                opacity, reach, np.asarray(origin, np.float64), float(voxel), *shape)

@@ -18,13 +18,13 @@ import numpy as np
 import torch
 
 from station.export.gate import GateResult
+from station.ngs.conventions import rgb_to_sh
 from station.ngs.dataset import SceneData, View
 from station.ngs.gaussians import Gaussians
 from station.ngs.infill import Infill
 from station.ngs.raster import rasterization
 from station.scanfolder import atomic_write_text
 
-SH_C0 = 0.28209479177387814
 T_FLOOR = 1e-6  # transmittance shown black; 1 is white, 1e-3 mid-grey
 
 
@@ -82,7 +82,7 @@ def render_panels(surface: Gaussians, infill: Infill, scene: SceneData, n_held_o
     n, m = len(surface), len(infill)
     noise = infill.gaussians(1.0)
     green_sh = torch.zeros(m, g["colors"].shape[1], 3)
-    green_sh[:, 0] = (torch.tensor([0.0, 1.0, 0.0]) - 0.5) / SH_C0
+    green_sh[:, 0] = rgb_to_sh(torch.tensor([0.0, 1.0, 0.0]))
     inserted = _join(_with_colours(g, g["colors"]), _with_colours(noise, green_sh))
     leak_scene = _join(_with_colours(g, torch.tensor([1.0, 0.0, 0.0]).expand(n, 3)),
                        _with_colours(noise, torch.tensor([0.0, 1.0, 0.0]).expand(m, 3)))

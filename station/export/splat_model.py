@@ -13,8 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from station.errors import BadInputError
-
-SH_C0 = 0.28209479177387814
+from station.ngs.conventions import SH_C0
 
 # Turntable frame (+z up) to a +Y-up right-handed frame (SPZ's RUB, glTF): rotate -90 deg about x.
 TURNTABLE_TO_YUP = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], dtype=np.float64)

@@ -35,6 +35,7 @@ from station.export.report import ReportInputs, render_panels, write_report
 from station.export.splat_formats import write_splat
 from station.export.splat_model import SplatModel, logit
 from station.export.spz import write_spz
+from station.ngs.conventions import rgb_to_sh
 from station.ngs.dataset import SceneData, View, load_scene
 from station.ngs.gaussians import Gaussians
 from station.ngs.infill import Camera, Infill
@@ -89,7 +90,7 @@ def infill_splat(infill: Infill) -> SplatModel:
         np.log(infill.scales.numpy())[:, None].repeat(3, axis=1),
         quats,
         np.full(m, logit(np.array(1.0))),
-        np.full((m, 3), (INFILL_GREY - 0.5) / 0.28209479177387814),
+        np.full((m, 3), rgb_to_sh(INFILL_GREY)),
         np.zeros((m, 0, 3)),
     )
 

@@ -15,15 +15,17 @@ import math
 import numpy as np
 from numba import njit, prange
 
-TILE = 16
+from station.ngs import conventions
+from station.ngs.conventions import TILE
+
 TILE_PIX = TILE * TILE
 # float32 constants: a float64 literal would promote float32 arithmetic to float64 (half the SIMD width);
 # with float64 inputs they promote harmlessly.
 F = np.float32
 ZERO, HALF, ONE = F(0.0), F(0.5), F(1.0)
-ALPHA_MAX = F(0.99)
-ALPHA_MIN = F(1.0 / 255.0)
-T_STOP = F(1e-4)
+ALPHA_MAX = F(conventions.ALPHA_MAX)
+ALPHA_MIN = F(conventions.ALPHA_MIN)
+T_STOP = F(conventions.T_STOP)
 LOG2E = F(1.4426950408889634)
 LN2 = F(0.6931471805599453)
 SQRT2 = F(1.4142135623730951)

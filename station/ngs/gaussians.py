@@ -13,17 +13,9 @@ import torch
 from scipy.spatial import cKDTree
 
 from station.errors import BadInputError
+from station.ngs.conventions import rgb_to_sh
 
-SH_C0 = 0.28209479177387814  # Y_0^0: colour = SH_C0 * dc + 0.5
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
-
-
-def rgb_to_sh(rgb: torch.Tensor) -> torch.Tensor:
-    return (rgb - 0.5) / SH_C0
-
-
-def sh_to_rgb(sh0: torch.Tensor) -> torch.Tensor:
-    return sh0 * SH_C0 + 0.5
 
 
 def num_sh_bases(degree: int) -> int:

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from station.ngs.gaussians import rgb_to_sh
+from station.ngs.conventions import rgb_to_sh
 from station.ngs.infill import Camera, Infill, InfillConfig, build_infill, random_rgbcmy
 from station.ngs.strategy import remove
 

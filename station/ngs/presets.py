@@ -29,18 +29,11 @@ def paper_preset() -> TrainConfig:
 def fast_preset() -> TrainConfig:
     """Short CPU run (demo, CI, the station's default); every schedule keeps the paper's proportions.
 
-    Sized from the held-out error of a 240-view 320x240 simulated stone (README, "Evidence for the
-    fast preset"): 50k Gaussians and infill levels to 128 bought no held-out PSNR over 15k and levels
-    (32, 64) (42.7 against 41.2-42.5 dB). SOS is what needs the steps: 0.90 after 2,000, 0.96 after
-    3,000 (30k Gaussians: 0.97 at twice the time). A scene whose held-out SOS is still below 0.95 and
-    rising at 3,000 steps trains on, up to 3,000 steps more (stopping.py): the real stone mesh at
-    256x192 still gained 0.02 SOS per 500 steps at +2,000 (0.924, 0.949). The budget follows the
-    stone's size on screen (DensifyConfig.per_object_pixel): 2.65 per pixel is the demo stone's 15k;
-    the real stone mesh, 2.3x larger on screen, went from SOS 0.87 at 15k to 0.95 at 34k. Colour is
-    trained to SH degree 1 (a softbox stone shows little view-dependent colour), and written at the
-    lowest degree its held-out views need (sh_degree.py). Training starts at half resolution and moves
-    up once that stops raising the full-resolution held-out PSNR (resolution.py); on the stones measured
-    that was at step 200, and the coarse start cost no held-out PSNR at equal steps.
+    Sized by held-out error against training size (docs/method.md): a larger Gaussian budget bought no
+    held-out PSNR, steps bought SOS. So the plan is a floor: a scene still gaining SOS trains on
+    (stopping.py), the budget follows the stone's size on screen (DensifyConfig.per_object_pixel), colour is
+    written at the lowest SH degree its held-out views need (sh_degree.py), and training starts coarse and
+    moves up once that stops paying (resolution.py).
     """
     return TrainConfig(
         steps=3_000,
@@ -48,7 +41,7 @@ def fast_preset() -> TrainConfig:
         downscale=1,
         checkpoint_every=250,
         eval_every=500,
-        densify=DensifyConfig(max_gaussians=60_000, per_object_pixel=2.65),  # 15k on the demo stone
+        densify=DensifyConfig(max_gaussians=60_000, per_object_pixel=2.65),
         ngs=NGSConfig(infill=InfillConfig(levels=(32, 64), erosion_iters=(3, 4))),
         extend=ExtendConfig(max_extra_steps=3_000),
         resolution=ResolutionConfig(start_downscale=2),

@@ -2,9 +2,7 @@
 
 The first steps place and grow Gaussians, and a coarse image does that for a quarter of the pixel
 cost. A model fitted only to coarse images renders thin, aliased Gaussians at full resolution,
-though: on the real stone mesh at 256x192, 3,000 half-resolution steps scored 30.1 dB on the
-held-out views at full resolution, against 37.5 dB trained at full resolution. So training always
-ends at full resolution, and the question a scene answers is when to move up. At each check the
+though, so training always ends at full resolution, and the question a scene answers is when to move up. At each check the
 held-out views are scored at full resolution; while the coarse level still raises that score,
 training stays coarse, and once it stops rising the downscale halves. No level lasts longer than
 splatfacto's fixed schedule (3,000 of 30,000 steps per level). Every check, with its figures, goes

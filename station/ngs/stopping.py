@@ -18,8 +18,7 @@ class ExtendConfig:
     max_extra_steps: int = 0  # 0: train exactly the planned steps
     sos_target: float = 0.95  # no extension for SOS once the held-out SOS reaches this
     min_sos_gain: float = 0.005  # per block: a smaller gain is a plateau
-    # Per block. Held-out PSNR wanders by about 0.1 dB from one evaluation to the next once it has
-    # converged (the demo stone between 2,000 and 3,000 steps), so only a clear rise counts.
+    # Per block. Held-out PSNR wanders between evaluations once it has converged, so only a clear rise counts.
     min_psnr_gain_db: float = 0.25
 
 

@@ -31,9 +31,7 @@ class DensifyConfig:
     refine_every: int = 100
     max_gaussians: int = 2_000_000  # a budget: growth stops here (CPU memory)
     # > 0: the budget follows the object, this many Gaussians per pixel it covers in the mean training
-    # view, capped by max_gaussians. A stone filling twice the image needs about twice the Gaussians:
-    # the real stone mesh (17 % of the frame) reached SOS 0.87 with the demo stone's 15k (7 % of the
-    # frame) and 0.95 with 34k.
+    # view, capped by max_gaussians: a stone filling twice the image needs about twice the Gaussians.
     per_object_pixel: float = 0.0
 
     def budget_for(self, object_pixels: float | None) -> int:

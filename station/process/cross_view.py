@@ -1,41 +1,20 @@
 """Masks cut again once the views are posed, with the stone's silhouette as the other rings see it.
 
 One view alone cannot always tell a stone's shaded side from its own contact shadow: a pale stone
-seen from the lowest ring fades into the shadow below it with no edge at all, and its masks lost
-the lower part (IoU 0.87 against the simulator's truth). The other rings see that part from
-above, where it stands against the plate, not beside its shadow. So once the views are posed,
-the masks of every other ring carve a visual hull, the hull is projected into the view, and the
-view's matte is cut again with that silhouette in the seed and as a prior (masks.compute_matte).
-A view's own ring is left out of its hull: its views share the same blind spot. Rings go lowest
-first, and each carves with the others' latest masks, so the ring above the lowest gains from the
-lowest ring's mended masks.
+seen from the lowest ring fades into the shadow below it with no edge at all. The other rings see
+that part from above, where it stands against the plate, not beside its shadow. So once the views
+are posed, the masks of every other ring carve a visual hull, the hull is projected into the view,
+and the view's matte is cut again with that silhouette in the seed and as a prior
+(masks.compute_matte). A view's own ring is left out of its hull: its views share the same blind
+spot. Rings go lowest first, and each carves with the others' latest masks.
 
-The silhouette a view is cut again with comes from a tolerant hull: a voxel stays while no more than 5 %
-of the views that see it call it background. A strict hull is only as good as its worst masks, and the
-ring above the lowest can lose the same shaded side in view after view: on two more pale stones (seeds 5
-and 7) that kept their lowest rings at 0.916 and 0.876. With the tolerant hull: 0.966 and 0.981, and 0.981
-and 0.979 once the silhouette's prior fell from 5 nats to 2 (masks.MaskSettings.silhouette_prior_nats): seen
-from the lowest ring the hull has a roof over a flat-topped stone, since no other ring looks as low, and the
-stronger prior took in the pale backdrop under it. The prior is now 4 nats, and 1 on the part of the silhouette
-that may be roof (`roofed_part`: nearest to an edge that faces up more steeply than the hull's views see
-edge-on). The whole cut across rings from the same first cuts, lowest ring and the one above: pale seeds 3, 5, 7
-0.9837, 0.9809, 0.9792 -> 0.9844, 0.9851, 0.9807 (e1 0.9902, 0.9843, 0.9840 -> 0.9903, 0.9853, 0.9873); the
-stones the shot alone masks well lose a little more to their re-cut views: speckled 0.9865 -> 0.9837, grey
-0.9861 -> 0.9813, dark 0.9969 -> 0.9963.
-
-The hull is trusted only above its lowest tenth. No other ring sees under the stone, so there the hull
-is a skirt down to the plate, wider than the stone; from the lowest ring it lay over the contact shadow,
-and the cut took the shadow in. Every view of a speckled stone's lowest ring cut again (with the strict
-hull, before the tolerant one above) scored 0.9775 with the whole hull and 0.9850 without its floor,
-where the first cut had 0.9868; the pale stone's rose from 0.9792 to 0.9826 (640x480 averaged to 320x240).
-
-Only views that need it are cut again: those whose own mask calls background more than 0.2 % of the
-deep part (farther inside than 3 % of its size) of the strict hull's silhouette, the stone every other
-view agrees on. Where no ring saw past it the hull is still larger than the stone, so at its edge the
-silhouette is no better than a good mask, and a stone the shot alone masks well can lose a little to a
-re-cut: on full scans (bench/cross_view.py, 640x480 averaged to 320x240) the lowest rings of two speckled
-stones, a grey and a dark one lost 0.0003, 0.0000, 0.0016 and 0.0001 (to 0.9865, 0.9945, 0.9861 and
-0.9969); two real meshes had no view cut again.
+The silhouette comes from a tolerant hull (a voxel stays while few of the views that see it call it
+background), since a strict hull is only as good as its worst masks. Seen from the lowest ring that
+hull has a roof over a flat-topped stone, so the prior is weaker on the part that may be roof
+(`roofed_part`). The hull is trusted only above its lowest tenth: no other ring sees under the stone,
+so there it is a skirt over the contact shadow. Only views whose own mask calls background a clear
+part of the strict hull's deep silhouette are cut again, because at its edge the hull is no better
+than a good mask. docs/method.md gives the measurements behind each choice.
 
 The hull is carved from the masks at the training size, the poses' own; a view is cut again at the
 size it was developed, as its first cut was (its silhouette projected there), then averaged down.
@@ -157,11 +136,8 @@ def roofed_part(silhouette: np.ndarray, c2w: np.ndarray, hull_views_down: float)
     down by d, an edge of the silhouette whose outward normal is at angle a from the image's up comes from surface
     that faces up by asin(cos a cos d). The tent's own faces face up no more steeply than the limit, so edges
     beyond it appear where those faces meet, at the tent's peaks, which no view pins down. The part returned is
-    every pixel of the silhouette whose nearest edge pixel is such an edge: a wedge under each peak, on average
-    20 % and 13 % of the lowest ring's silhouettes of pale seeds 5 and 7 (2-34 % a view). It is empty when this
-    view looks down more steeply than the hull's views. Widening the limit by 5 or 10 degrees, to take in the
-    tent's steepest faces, marked 1.4 and 1.8 times as much and did no better (pale seeds 5 and 7, lowest ring:
-    0.9851, 0.9807 at the limit; 0.9837, 0.9798 at 10 degrees; measured before project_hull filled its pinholes).
+    every pixel of the silhouette whose nearest edge pixel is such an edge: a wedge under each peak. It is empty
+    when this view looks down more steeply than the hull's views.
     """
     limit = np.cos(hull_views_down) / np.cos(looking_down(c2w))
     if limit >= 1.0 or not silhouette.any():

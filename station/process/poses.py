@@ -44,8 +44,8 @@ class PoseSettings:
     drift_centre_fraction: float = 0.01  # a ring's shared shift against the rig, of the orbit radius
     min_cross_check_fraction: float = 0.7  # of the views the cross-check mapping must register to judge drift
     hull_resolution: int = 96
-    # Foreign scans have no rig to lean on and often sparse views: pay for affine SIFT there (on the
-    # Middlebury ring it halves the worst camera error, 1.1% -> 0.66% of the orbit radius).
+    # Foreign scans have no rig to lean on and often sparse views: pay for affine SIFT there, where it
+    # lowers the worst camera error.
     fallback_affine_sift: bool = True
 
 
@@ -211,8 +211,7 @@ def _cross_check(database: Path, image_dir: Path, work: Path, rig_poses: dict[st
         out["flags"].append(f"cross-check mapping registered {len(mapped)} of {len(rig_poses)} views; "
                             f"not: {', '.join(missing)}")
     if len(mapped) < max(3, settings.min_cross_check_fraction * len(rig_poses)):
-        # a mapping that lost this many views is itself in doubt (on a speckled stone it registered
-        # 111 of 240, every ring 1-2 deg off the exact rig): no verdict on drift from it
+        # a mapping that lost this many views is itself in doubt: no verdict on drift from it
         out["flags"].append(f"cross-check mapping inconclusive ({len(mapped)} of {len(rig_poses)} views): "
                             "poses rest on the rig model alone")
         return out
@@ -225,8 +224,7 @@ def _cross_check(database: Path, image_dir: Path, work: Path, rig_poses: dict[st
     # A slipped arm or a wobbling plate moves a whole elevation ring the same way as seen from its
     # camera; mapping noise scatters every view its own way. So each ring is judged by the median
     # of its views' disagreements in the camera frame, which keeps a shared offset and cancels
-    # scattered ones (a real stone's free mapping is off by 0.2-0.5 deg per view in every ring,
-    # and a per-view median flagged rings that matched the rig to 0.08 mm).
+    # scattered ones (a per-view median flagged rings that matched the rig).
     drifted, rings = [], {}
     for e in sorted({elevation_of[n] for n in names}):
         ring = [n for n in names if elevation_of[n] == e]
