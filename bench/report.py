@@ -1,0 +1,315 @@
+"""docs/evidence.md from bench/results/*.json: every figure the project quotes, as tables and plots.
+
+The bench scripts write the measurements; this page is generated from them so that no figure lives
+only in prose, where it goes stale. Each results file gets a section: a known benchmark its own
+table and, where its script draws none, a speed-against-error plot written beside the JSON; any other
+file a table of its top-level figures, so nothing measured goes unreported.
+
+    python bench/report.py [--results bench/results] [--out docs/evidence.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
+from svgplot import Series, scatter_svg  # noqa: E402
+
+from station.errors import BadInputError  # noqa: E402
+from station.scanfolder import atomic_write_bytes, atomic_write_text  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+Section = tuple[list[str], dict[str, str]]  # markdown lines, {plot file name: SVG text}
+
+
+def table(header: list[str], rows: list[list[object]]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return out + [""]
+
+
+def num(value: object, digits: int = 3) -> str:
+    if isinstance(value, bool) or value is None:
+        return {True: "yes", False: "no", None: ""}[value]
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    if isinstance(value, int):
+        return f"{value:,}"
+    return str(value)
+
+
+def kind_of(data: dict) -> str:
+    methods = data.get("methods")
+    if isinstance(methods, dict) and methods:
+        first = next(iter(methods.values()))
+        if isinstance(first, dict) and "held_out_curve" in first:
+            return "ngs"
+        if isinstance(first, dict) and "chamfer_fraction_of_diagonal" in first:
+            return "mesh"
+    if "seconds_per_mask" in data and "summary" in data:
+        return "masks"
+    if data.get("stones") and "first_cut" in data["stones"][0].get("rings", [{}])[0]:
+        return "cross_view"
+    if "develop" in data and "posing" in data:
+        return "process"
+    configs = data.get("configs") or [{}]
+    if "step_ms" in configs[0]:
+        return "raster"
+    if "scans_per_hour" in configs[0]:
+        return "batch"
+    if "frames_per_min" in configs[0]:
+        return "scan"
+    return "other"
+
+
+def sos_at_plan(run: dict) -> str:
+    """Held-out SOS at the planned step count, which compares runs that trained on for different lengths."""
+    at = [p["sos"] for p in run["held_out_curve"] if p["step"] == run["planned_steps"] and p.get("sos") is not None]
+    return num(at[0]) if at else ""
+
+
+def ngs_section(name: str, data: dict) -> Section:
+    rows = [[run, num(r["psnr"], 2), num(r["psnr_star"], 2), num(r["ssim"], 4), num(r["sos"]), sos_at_plan(r),
+             num(r["num_gaussians"]), f"{num(r['steps'])} ({num(r['planned_steps'])})", num(r["train_seconds"], 0)]
+            for run, r in data["methods"].items()]
+    lines = [f"Scan: {data['scan']}; presets {', '.join(data['presets'])}; training seed {data['seed']}. "
+             f"Peer: {data['peer']}. SOS at the plan is the held-out SOS at the planned step count against the "
+             "run's own training infill, where the run has one.", ""]
+    lines += table(["run", "PSNR dB", "PSNR* dB", "SSIM", "SOS", "SOS at the plan", "Gaussians", "steps (planned)",
+                    "train s"], rows)
+    lines.append(f"NGS's held-out PSNR below the best of 3DGS, 3DGS + alpha and NGS: "
+                 f"{data['ngs_psnr_gap_to_best_db']:.3f} dB.")
+    coarse = data.get("coarse_start_against_full_resolution")
+    if coarse:
+        lines.append(f"Coarse start against full resolution throughout: seconds per step ×{coarse['seconds_per_step_ratio']}, "
+                     f"PSNR {coarse['psnr_delta_db']:+.3f} dB, SOS {coarse['sos_delta']:+.4f}.")
+    return lines + [""], {}
+
+
+def masks_section(name: str, data: dict) -> Section:
+    by_stone: dict[str, dict[str, list[dict]]] = {}
+    for row in data["summary"]:
+        by_stone.setdefault(row["stone"], {}).setdefault(row["method"], []).append(row)
+    methods = list(dict.fromkeys(row["method"] for row in data["summary"]))
+    rows = [[stone] + [", ".join(f"{r['iou_mean']:.3f}" for r in sorted(found.get(m, []), key=lambda r: r["ring"]))
+                       for m in methods] for stone, found in by_stone.items()]
+    speed = data["seconds_per_mask"]
+    lines = [f"{data['views_per_ring']} views a ring at {data['size'][0]}×{data['size'][1]}; mean IoU against the "
+             "simulator's truth per ring, lowest ring first.", ""]
+    lines += table(["stone"] + methods, rows)
+    lines += [f"Seconds a mask: {', '.join(f'{k} {v}' for k, v in speed.items())}.", ""]
+    series = [Series(m, [(sum(r["seconds_mean"] for r in found[m]) / len(found[m]),
+                          1.0 - sum(r["iou_mean"] for r in found[m]) / len(found[m]))
+                         for found in by_stone.values() if m in found]) for m in methods]
+    svg = scatter_svg(f"{name}: mask error against time, one point a stone", "seconds a mask",
+                      "1 - mean IoU (log)", series, log_y=True)
+    return lines, {f"{name}.svg": svg}
+
+
+def cross_view_section(name: str, data: dict) -> Section:
+    sensor = f"{data['sensor'][0]}×{data['sensor'][1]}"
+    rows, series = [], []
+    for stone in data["stones"]:
+        rings = stone["rings"]
+        low, recut = rings[0], stone["recut_views"]
+
+        def iou(ring: dict, key: str) -> float:
+            return ring[key]["iou_mean"]
+
+        above = [iou(r, "across_rings") for r in rings[1:]]
+        whole_first = sum(iou(r, "first_cut") for r in rings) / len(rings)
+        whole = sum(iou(r, "across_rings") for r in rings) / len(rings)
+        rows.append([stone["stone"], f"{iou(low, 'first_cut'):.4f} → {iou(low, 'across_rings'):.4f} "
+                     f"({recut.get(str(low['elevation_deg']), 0)} cut again)",
+                     f"{min(above):.3f}-{max(above):.3f}" if above else "", f"{whole_first:.4f} → {whole:.4f}",
+                     num(stone["seconds"]["develop_and_first_cut"], 0), num(stone["seconds"]["across_rings"], 0)])
+        first_s = stone["seconds"]["develop_and_first_cut"]
+        series.append(Series(stone["stone"], [(first_s, 1.0 - iou(low, "first_cut")),
+                                              (first_s + stone["seconds"]["across_rings"],
+                                               1.0 - iou(low, "across_rings"))], joined=True))
+    trained = f", averaged down to {data['training_width']} px wide" if data.get("training_width") else ""
+    lines = [f"Full 6×{data['azimuths']} scans shot at {sensor}{trained}; IoU per ring against the simulator's "
+             "truth after the first cut and after the cut across rings, in the same run.", ""]
+    lines += table(["stone", "lowest ring", "rings above (after)", "whole scan", "develop + first cut s",
+                    "across rings s"], rows)
+    svg = scatter_svg(f"{name}: lowest ring, first cut -> cut across rings", "seconds (develop and mask)",
+                      "1 - IoU, lowest ring (log)", series, log_y=True)
+    return lines, {f"{name}.svg": svg}
+
+
+def raster_section(name: str, data: dict) -> Section:
+    rows = [[num(c["gaussians"]), f"{c['width']}×{c['height']}", c["sh_degree"], num(c["step_ms"], 1),
+             num(c["forward_ms"], 1), num(c["reference_step_ms"], 0), num(c["speedup_vs_reference"], 0), c["role"]]
+            for c in data["configs"]]
+    lines = [f"One training step (forward and backward), {data['threads']} threads, torch {data['torch']}, "
+             f"numba {data['numba']}; the plain-torch reference timed where it fits.", ""]
+    lines += table(["Gaussians", "image", "SH", "step ms", "forward ms", "reference ms", "speed-up", "role"], rows)
+    lines += [f"Peak memory {data['peak_rss_mb']} MB (whole run), {data['peak_rss_100k_512_mb']} MB at 100k Gaussians "
+              f"and 512²; cold start with a warm numba cache {data['cold_start_ms']} ms. The rasteriser's error "
+              "against the reference is pinned by the tests, so the plot is of cost alone.", ""]
+    series = [Series(role, [(c["gaussians"] * c["width"] * c["height"], c["step_ms"])
+                            for c in data["configs"] if c["role"] == role])
+              for role in dict.fromkeys(c["role"] for c in data["configs"])]
+    svg = scatter_svg(f"{name}: step time against size", "Gaussians × pixels (log)", "ms a step (log)", series,
+                      log_x=True, log_y=True)
+    return lines, {f"{name}.svg": svg}
+
+
+def mesh_section(name: str, data: dict) -> Section:
+    rows = [[method, num(m["seconds"], 1), num(m["faces"]), num(m["watertight"]),
+             f"{100 * m['chamfer_fraction_of_diagonal']:.2f} %", num(m["fscore"]), f"{100 * m['volume_rel_error']:+.1f} %"]
+            for method, m in data["methods"].items()]
+    lines = [f"Scan: {data['scan']}. Peer: {data['peer']}.", ""]
+    lines += table(["surface", "s", "faces", "watertight", "Chamfer-L1 of diagonal", "F-score@1 %", "volume"], rows)
+    series = [Series(method, [(m["seconds"], 100 * m["chamfer_fraction_of_diagonal"])])
+              for method, m in data["methods"].items()]
+    svg = scatter_svg(f"{name}: mesh error against time", "seconds", "Chamfer-L1, % of the diagonal", series)
+    return lines, {f"{name}.svg": svg}
+
+
+def process_section(name: str, data: dict) -> Section:
+    develop, posing = data["develop"], data["posing"]
+    lines = [f"Develop, {develop['repeats']} repeats; peer: {develop['peer']}.", ""]
+    lines += table(["source", "kind", "MP", "ours s", "peer s", "ours / peer"],
+                   [[r["source"], r["kind"], num(r["megapixels"]), num(r["ours_s"], 3), num(r["rawpy_default_s"], 3),
+                     num(r["ours_over_rawpy"], 2)] for r in develop["rows"]])
+    lines += [f"Posing a scan of a {posing['scan']['stone']}: {posing['note']}.", ""]
+    rows = []
+    for r in posing["rows"]:
+        check = r.get("cross_check") or {}
+        rows.append([r["views"], r["method"], num(r["seconds"], 1), r["registered"], num(r["reprojection_error_px"]),
+                     f"{r['rotation_median_deg']:.2f} / {r['rotation_max_deg']:.2f}",
+                     f"{r['centre_median_pct']:.2f} / {r['centre_max_pct']:.2f}",
+                     f"{check['rotation_median_deg']:.2f}° (flags {check['drift_flagged_elevations']})" if check else ""])
+    lines += table(["views", "method", "s", "registered", "reprojection px", "rotation median / max °",
+                    "centre median / max %", "cross-check"], rows)
+    series = [Series("rig, its cross-check's rotation", [(r["seconds"], r["cross_check"]["rotation_median_deg"])
+                                                         for r in posing["rows"] if r.get("cross_check")], True),
+              Series("free SfM", [(r["seconds"], r["rotation_median_deg"])
+                                  for r in posing["rows"] if r["method"] == "sfm"], True)]
+    svg = scatter_svg(f"{name}: pose error against time (40, 120, 240 views)", "seconds to pose",
+                      "median rotation error, degrees", series)
+    return lines, {f"{name}.svg": svg}
+
+
+def batch_section(name: str, data: dict) -> Section:
+    rows = [[c["workers"], c["threads_per_stage"], c["scans"], num(c["wall_s"], 1), num(c["scans_per_hour"], 0),
+             num(c["overhead_median_s"], 3), ", ".join(sorted(set(c["verdicts"])))] for c in data["configs"]]
+    scan = data["scan"]
+    lines = [f"{scan['elevations']}×{scan['azimuths']} scans at {scan['size'][0]}×{scan['size'][1]}, preset "
+             f"{scan['preset']}. Peer: {data['peer']}. Throughput only: no error axis.", ""]
+    lines += table(["workers", "threads a stage", "scans", "wall s", "scans / hour", "overhead a stage s", "verdicts"],
+                   rows)
+    extra = {k: v for k, v in data.items() if k.startswith("speedup")}
+    return lines + [", ".join(f"{k} {v}" for k, v in extra.items()) + ".", ""] if extra else lines, {}
+
+
+def scan_section(name: str, data: dict) -> Section:
+    rows = [[c["mode"], c["frames"], num(c["wall_s"], 1), num(c["motion_s"], 1), num(c["exposure_s"], 1),
+             num(c["overhead_s"], 1), num(c["frames_per_min"], 1)] for c in data["configs"]]
+    lines = [f"Simulated rig, {data['size'][0]}×{data['size'][1]}, {len(data['plan']['elevations_deg'])} rings of "
+             f"{data['plan']['azimuths']}. Throughput only: no error axis.", ""]
+    lines += table(["mode", "frames", "wall s", "motion s", "exposure s", "overhead s", "frames / min"], rows)
+    lines += [f"Overlap hides {data['overlap_hides_s']} s; speed-up against sequential ×{data['speedup_vs_sequential']}.",
+              ""]
+    return lines, {}
+
+
+def other_section(name: str, data: dict) -> Section:
+    flat = {k: v for k, v in data.items() if not isinstance(v, (dict, list))}
+    nested = [k for k, v in data.items() if isinstance(v, (dict, list))]
+    lines = ["No table of its own here yet; its top-level figures:", ""]
+    lines += table(["key", "value"], [[k, num(v)] for k, v in flat.items()]) if flat else []
+    if nested:
+        lines += [f"Nested: {', '.join(f'`{k}`' for k in nested)}.", ""]
+    return lines, {}
+
+
+SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
+    "scan": ("Scanning on the simulated rig", scan_section),
+    "process": ("Developing and posing", process_section),
+    "masks": ("Masks, one view at a time", masks_section),
+    "cross_view": ("Masks cut again across rings", cross_view_section),
+    "raster": ("Rasteriser speed", raster_section),
+    "ngs": ("NGS against its baselines", ngs_section),
+    "mesh": ("Mesh surface", mesh_section),
+    "batch": ("Batch throughput", batch_section),
+    "other": ("Other results", other_section),
+}
+SCRIPTS = {"cross_view": "cross_view", "ngs": "ngs"}
+
+
+def load(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise BadInputError(f"{path}: not a readable results file ({exc})") from exc
+    if not isinstance(data, dict):
+        raise BadInputError(f"{path}: expected a JSON object of results")
+    return data
+
+
+def machine_line(data: dict) -> str:
+    machine = data.get("machine") or {}
+    cpus = machine.get("cpus") or machine.get("cpu_count")
+    return f"Machine: {machine.get('platform', 'not recorded')}, {cpus or '?'} CPUs."
+
+
+def render(results: Path, out: Path) -> tuple[str, dict[Path, str]]:
+    """The page's markdown and the plots to write, {path: SVG}; links are relative to `out`'s folder."""
+    files = sorted(results.glob("*.json"))
+    if not files:
+        raise BadInputError(f"{results}: no results files (*.json)")
+    loaded = [(path, load(path)) for path in files]
+    order = list(SECTIONS)
+    loaded.sort(key=lambda item: (order.index(kind_of(item[1])), item[0].name))
+    link_root = Path(os.path.relpath(results, out.parent))
+    lines = ["# Evidence", "",
+             "Generated by `./dev bench report` (`bench/report.py`) from `bench/results/*.json`; do not edit by hand.",
+             "Each results file is written by the bench script named under it, which prints the same table. Timings",
+             "come from a shared 2-core machine unless the file says otherwise: compare within one table only.", ""]
+    plots: dict[Path, str] = {}
+    current = None
+    for path, data in loaded:
+        kind = kind_of(data)
+        title, section = SECTIONS[kind]
+        if title != current:
+            lines += [f"## {title}", ""]
+            current = title
+        script = SCRIPTS.get(kind, data.get("benchmark") or kind)
+        body, drawn = section(path.stem, data)
+        lines += [f"### {path.name}", "",
+                  f"[`bench/results/{path.name}`]({(link_root / path.name).as_posix()}), from `bench/{script}.py`. "
+                  + machine_line(data), ""]
+        lines += body
+        for svg_name, svg in drawn.items():
+            plots[results / svg_name] = svg
+        plot = results / f"{path.stem}.svg"
+        if plot in plots or plot.exists():
+            lines += [f"![{path.stem}: speed against error]({(link_root / plot.name).as_posix()})", ""]
+    return "\n".join(lines).rstrip() + "\n", plots
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--results", type=Path, default=ROOT / "bench" / "results")
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "evidence.md")
+    args = parser.parse_args()
+    try:
+        page, plots = render(args.results, args.out)
+    except BadInputError as exc:
+        sys.exit(f"report: {exc}")
+    for path, svg in plots.items():
+        atomic_write_bytes(path, svg.encode())
+    atomic_write_text(args.out, page)
+    print(f"wrote {args.out} ({len(page):,} bytes) and {len(plots)} plots in {args.results}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,67 @@
+"""bench/report.py: docs/evidence.md is generated from every committed results file, plots and all."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+
+
+def run_report(results: Path, out: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "bench" / "report.py"), "--results", str(results),
+                           "--out", str(out)], capture_output=True, text=True, timeout=120)
+
+
+@pytest.fixture
+def results_copy(tmp_path: Path) -> Path:
+    copy = tmp_path / "results"
+    copy.mkdir()
+    for path in RESULTS.glob("*.json"):
+        shutil.copy(path, copy)
+    for path in RESULTS.glob("ngs*.svg"):  # drawn by bench/ngs.py itself, not by the report
+        shutil.copy(path, copy)
+    return copy
+
+
+def test_every_committed_results_file_has_a_section_and_every_link_resolves(results_copy: Path, tmp_path: Path):
+    out = tmp_path / "docs" / "evidence.md"
+    done = run_report(results_copy, out)
+    assert done.returncode == 0, done.stderr
+    page = out.read_text()
+    committed = sorted(p.name for p in RESULTS.glob("*.json"))
+    assert committed
+    for name in committed:
+        assert f"### {name}" in page and f"bench/results/{name}" in page, name
+    links = re.findall(r"\]\(([^)]+)\)", page)
+    assert any(link.endswith(".svg") for link in links)
+    for link in links:
+        assert (out.parent / link).resolve().is_file(), link
+    for svg in results_copy.glob("*.svg"):
+        assert ET.parse(svg).getroot().tag.endswith("svg"), svg.name
+
+
+def test_a_results_file_of_an_unknown_bench_still_gets_its_figures(results_copy: Path, tmp_path: Path):
+    (results_copy / "zz_new_bench.json").write_text(json.dumps({"benchmark": "new", "wall_s": 12.5, "rows": []}))
+    out = tmp_path / "evidence.md"
+    done = run_report(results_copy, out)
+    assert done.returncode == 0, done.stderr
+    section = out.read_text().split("### zz_new_bench.json", 1)[1]
+    assert "| wall_s | 12.500 |" in section and "`rows`" in section
+
+
+def test_a_broken_results_file_is_named_without_a_traceback(results_copy: Path, tmp_path: Path):
+    (results_copy / "broken.json").write_text('{"benchmark": ')
+    out = tmp_path / "evidence.md"
+    done = run_report(results_copy, out)
+    assert done.returncode != 0
+    assert "broken.json" in done.stderr and "Traceback" not in done.stderr
+    assert not out.exists()
