@@ -24,6 +24,7 @@ from station.errors import BadInputError
 OutputSpace = Literal["srgb", "camera"]
 DemosaicName = Literal["AHD", "PPG", "VNG", "DCB", "DHT", "AAHD", "LINEAR"]
 BayerPattern = Literal["RGGB", "BGGR", "GRBG", "GBRG"]
+MatrixSource = Literal["file", "libraw_table", "none"]
 
 # sRGB (D65) primaries -> XYZ, IEC 61966-2-1; used to turn LibRaw's XYZ->camera table into camera->sRGB.
 XYZ_FROM_SRGB = np.array(
@@ -89,7 +90,7 @@ class Developed:
     clipped_fraction: float
     signal_p99: float
     camera_to_srgb: np.ndarray  # [3, 3]
-    matrix_source: Literal["file", "libraw_table", "none"]
+    matrix_source: MatrixSource
     white_balance: WhiteBalance
     flags: list[str] = field(default_factory=list)
 
@@ -135,7 +136,7 @@ def _validate_dng_tags(path: Path, raw: rawpy.RawPy) -> None:
         _raise_unreadable(path, f"DNG lacks {' and '.join(missing)}; LibRaw would develop it silently wrong")
 
 
-def camera_matrix(raw: rawpy.RawPy) -> tuple[np.ndarray, Literal["file", "libraw_table", "none"]]:
+def camera_matrix(raw: rawpy.RawPy) -> tuple[np.ndarray, MatrixSource]:
     """Camera RGB -> linear sRGB. DNGs carry it in `color_matrix`; vendor raws in LibRaw's table."""
     from_file = np.asarray(raw.color_matrix, dtype=np.float64)[:3, :3]
     if np.abs(from_file).sum() > 1e-6:
@@ -175,12 +176,23 @@ def _flags(clipped: float, p99: float, settings: DevelopSettings) -> list[str]:
     return flags
 
 
-def _finish(camera_rgb: np.ndarray, matrix: np.ndarray, settings: DevelopSettings) -> np.ndarray:
-    """Shared tail of both develop paths: matrix to sRGB (if asked), then area downscale."""
+def _finish(camera_rgb: np.ndarray, source: Path, matrix: np.ndarray, matrix_source: MatrixSource,
+            wb: WhiteBalance, clipped: float, p99: float, settings: DevelopSettings) -> Developed:
+    """Shared tail of both develop paths: matrix to sRGB (if asked), area downscale, flags."""
     out = camera_rgb  # [H, W, 3]
     if settings.output_space == "srgb":
         out = cv2.transform(np.ascontiguousarray(out, dtype=np.float32), matrix.astype(np.float32))  # per-pixel 3x3
-    return downscale_area(out.astype(np.float32), settings.max_width)
+    return Developed(
+        linear=downscale_area(out.astype(np.float32), settings.max_width),
+        source=source,
+        space=settings.output_space,
+        clipped_fraction=clipped,
+        signal_p99=p99,
+        camera_to_srgb=matrix,
+        matrix_source=matrix_source,
+        white_balance=wb,
+        flags=_flags(clipped, p99, settings) + (["no_colour_matrix"] if matrix_source == "none" else []),
+    )
 
 
 def downscale_area(image: np.ndarray, max_width: int | None) -> np.ndarray:
@@ -223,18 +235,7 @@ def develop_raw(path: Path, settings: DevelopSettings, wb: WhiteBalance | None =
             raise BadInputError(f"{path}: LibRaw failed to develop it ({type(exc).__name__}: {exc})") from exc
     # LibRaw scales so the smallest multiplier maps white to 65535; undo that to get 1.0 = white x gain.
     camera_rgb = rgb16.astype(np.float32) * np.float32(gains.min() / 65535.0)  # [H, W, 3]
-    flags = _flags(clipped, p99, settings) + (["no_colour_matrix"] if matrix_source == "none" else [])
-    return Developed(
-        linear=_finish(camera_rgb, matrix, settings),
-        source=path,
-        space=settings.output_space,
-        clipped_fraction=clipped,
-        signal_p99=p99,
-        camera_to_srgb=matrix,
-        matrix_source=matrix_source,
-        white_balance=wb,
-        flags=flags,
-    )
+    return _finish(camera_rgb, path, matrix, matrix_source, wb, clipped, p99, settings)
 
 
 _PATTERN_INDEX = {
@@ -290,20 +291,9 @@ def develop_mosaic(
     data = mosaic.data.astype(np.float32)
     clipped, p99 = _signal_stats(data, mosaic.black_level, mosaic.white_level, settings)
     camera_rgb = demosaic_bilinear_ea(mosaic) * np.asarray(wb.gains, dtype=np.float32)  # [H, W, 3]
-    matrix_source: Literal["file", "none"] = "file" if matrix is not None else "none"
+    matrix_source: MatrixSource = "file" if matrix is not None else "none"
     matrix = np.eye(3) if matrix is None else np.asarray(matrix, dtype=np.float64)
-    flags = _flags(clipped, p99, settings) + (["no_colour_matrix"] if matrix_source == "none" else [])
-    return Developed(
-        linear=_finish(camera_rgb, matrix, settings),
-        source=mosaic.source,
-        space=settings.output_space,
-        clipped_fraction=clipped,
-        signal_p99=p99,
-        camera_to_srgb=matrix,
-        matrix_source=matrix_source,
-        white_balance=wb,
-        flags=flags,
-    )
+    return _finish(camera_rgb, mosaic.source, matrix, matrix_source, wb, clipped, p99, settings)
 
 
 def estimate_black_level(mosaic: np.ndarray, percentile: float = 0.1) -> tuple[float, ...]:

@@ -39,13 +39,7 @@ def write_png16(path: Path, linear_rgb: np.ndarray) -> None:
     """Encode scene-linear RGB [H, W, 3] (1.0 = white) as 16-bit sRGB PNG."""
     _check_rgb(linear_rgb, path)
     encoded = np.round(linear_to_srgb(linear_rgb) * 65535.0).astype(np.uint16)  # [H, W, 3]
-    bgr = np.ascontiguousarray(encoded[:, :, ::-1])
-
-    def writer(tmp: Path) -> None:
-        if not cv2.imwrite(str(tmp), bgr):
-            raise OSError(f"{path}: OpenCV could not write the PNG")
-
-    atomic_write_with(path, writer)
+    _write_png(path, np.ascontiguousarray(encoded[:, :, ::-1]), "PNG")
 
 
 def read_png16(path: Path) -> np.ndarray:
@@ -62,11 +56,15 @@ def write_mask_png(path: Path, mask: np.ndarray) -> None:
     and a value between is a coverage (`bool` masks, and readers that threshold at 128, see 0/255)."""
     if mask.ndim != 2:
         raise BadInputError(f"{path}: expected an [H, W] mask, got shape {mask.shape}")
-    data = np.rint(np.clip(mask.astype(np.float32), 0.0, 1.0) * 255).astype(np.uint8)
+    _write_png(path, np.rint(np.clip(mask.astype(np.float32), 0.0, 1.0) * 255).astype(np.uint8), "mask PNG")
+
+
+def _write_png(path: Path, data: np.ndarray, what: str) -> None:
+    """Atomic PNG write of BGR or single-channel `data` through OpenCV."""
 
     def writer(tmp: Path) -> None:
         if not cv2.imwrite(str(tmp), data):
-            raise OSError(f"{path}: OpenCV could not write the mask PNG")
+            raise OSError(f"{path}: OpenCV could not write the {what}")
 
     atomic_write_with(path, writer)
 
