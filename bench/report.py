@@ -35,12 +35,16 @@ def table(header: list[str], rows: list[list[object]]) -> list[str]:
 
 
 def num(value: object, digits: int = 3) -> str:
-    if isinstance(value, bool) or value is None:
-        return {True: "yes", False: "no", None: ""}[value]
-    if isinstance(value, float):
-        return f"{value:.{digits}f}"
-    if isinstance(value, int):
-        return f"{value:,}"
+    """A table cell: floats to `digits` places, integers with thousands separators, booleans as yes/no."""
+    match value:
+        case None:
+            return ""
+        case bool():
+            return "yes" if value else "no"
+        case int():
+            return f"{value:,}"
+        case float():
+            return f"{value:.{digits}f}"
     return str(value)
 
 
