@@ -35,9 +35,8 @@ from station.export.report import ReportInputs, render_panels, write_report
 from station.export.splat_formats import write_splat
 from station.export.splat_model import SplatModel, logit
 from station.export.spz import write_spz
-from station.ngs.conventions import rgb_to_sh
 from station.ngs.dataset import SceneData, View, load_scene
-from station.ngs.gaussians import Gaussians
+from station.ngs.gaussians import Gaussians, rgb_to_sh
 from station.ngs.infill import Camera, Infill
 from station.ngs.sos import EVAL_INFILL, evaluate, load_surface, scan_infill
 from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_text

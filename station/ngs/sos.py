@@ -17,9 +17,8 @@ import torch
 from skimage.metrics import structural_similarity
 
 from station.errors import BadInputError
-from station.ngs.conventions import rgb_to_sh
 from station.ngs.dataset import View, load_scene
-from station.ngs.gaussians import Gaussians
+from station.ngs.gaussians import Gaussians, rgb_to_sh
 from station.ngs.infill import Camera, Infill, InfillConfig, build_infill
 from station.ngs.inria_ply import read_inria_ply
 from station.ngs.raster import rasterization
