@@ -146,8 +146,8 @@ def main() -> None:
                         help="comma list: the first trains all three methods, each further one an NGS run")
     parser.add_argument("--ablations", action="store_true")
     parser.add_argument("--first-sizes", action="store_true",
-                        help="further presets keep the first preset's Gaussian budget and infill levels (at 256x192 the "
-                             "paper preset grew 317k Gaussians by step 6,000 and a 692k-Gaussian infill: hours on 2 cores)")
+                        help="further presets keep the first preset's Gaussian budget and infill levels (the paper "
+                             "preset's own growth does not fit a 2-core CPU: docs/method.md)")
     parser.add_argument("--full-resolution-peer", action="store_true",
                         help="add NGS trained at full resolution throughout, the peer of the preset's coarse start")
     parser.add_argument("--seed", type=int, default=0, help="training seed of every run (run-to-run spread)")
