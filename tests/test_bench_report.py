@@ -23,8 +23,8 @@ def run_report(results: Path, out: Path) -> subprocess.CompletedProcess:
 
 @pytest.fixture
 def results_copy(tmp_path: Path) -> Path:
-    copy = tmp_path / "results"
-    copy.mkdir()
+    copy = tmp_path / "bench" / "results"
+    copy.mkdir(parents=True)
     for path in RESULTS.glob("*.json"):
         shutil.copy(path, copy)
     for path in RESULTS.glob("ngs*.svg"):  # drawn by bench/ngs.py itself, not by the report
@@ -65,3 +65,11 @@ def test_a_broken_results_file_is_named_without_a_traceback(results_copy: Path, 
     assert done.returncode != 0
     assert "broken.json" in done.stderr and "Traceback" not in done.stderr
     assert not out.exists()
+
+
+def test_the_committed_evidence_page_is_the_one_the_committed_results_give(results_copy: Path, tmp_path: Path):
+    out = tmp_path / "docs" / "evidence.md"
+    done = run_report(results_copy, out)
+    assert done.returncode == 0, done.stderr
+    assert out.read_text() == (ROOT / "docs" / "evidence.md").read_text(), \
+        "docs/evidence.md is stale: run ./dev bench report and commit the page and its plots"
