@@ -45,26 +45,29 @@ def scan(
     out: Path = typer.Option(..., "--out", help="Scan folder to create or resume."),
     sim: bool = typer.Option(False, "--sim", help="Scan on the simulated rig."),
     stone: Optional[str] = typer.Option(None, "--stone", help="Simulated stone: mesh path, seed, or look:seed."),
-    port: Optional[str] = typer.Option(None, "--port", help="Turntable serial device or pyserial URL."),
-    camera: str = typer.Option("usb", "--camera", help="usb (PTP camera) or sim (simulated camera)."),
-    elevations: int = typer.Option(6, "--elevations", min=1),
-    azimuths: int = typer.Option(40, "--azimuths", min=1),
+    port: Optional[str] = typer.Option(None, "--port", help="Turntable URL (grbl:///dev/ttyUSB0), device or pyserial URL."),
+    camera: Optional[str] = typer.Option(None, "--camera", help="ptp, gphoto2, sim, or a camera URL (gphoto2://usb:001,004)."),
+    config: Optional[Path] = typer.Option(None, "--config", help="station.toml describing the rig (docs/operator.md)."),
+    elevations: Optional[int] = typer.Option(None, "--elevations", min=1),
+    azimuths: Optional[int] = typer.Option(None, "--azimuths", min=1),
     size: str = typer.Option("320x240", "--size", help="Simulated sensor size WxH."),
     time_scale: float = typer.Option(0.05, "--time-scale", help="Simulated motion/exposure time factor."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Shoot (or resume) a 6x40 hemisphere scan: plates first, then every shot; nothing is ever re-shot twice."""
     from station.cli_scan import run_hardware_scan, run_sim_scan
+    from station.config import load_config
 
     width, height = parse_size(size)
     started = time.monotonic()
     with progress_reporter("scan") as progress:
         if sim:
-            summary = run_sim_scan(out, stone, elevations, azimuths, (width, height), time_scale, progress)
-        elif port:
-            summary = run_hardware_scan(out, port, camera, elevations, azimuths, (width, height), progress)
+            summary = run_sim_scan(out, stone, elevations or 6, azimuths or 40, (width, height), time_scale, progress)
+        elif port or config:
+            rig_config = load_config(config).with_overrides(port=port, camera=camera, elevations=elevations, azimuths=azimuths)
+            summary = run_hardware_scan(out, rig_config, progress)
         else:
-            raise BadInputError("scan: give --sim, or --port DEVICE for a real turntable")
+            raise BadInputError("scan: give --sim, or --config station.toml / --port DEVICE for a real rig")
     result = {
         "scan": str(out),
         "frames": summary.total,
