@@ -10,6 +10,7 @@ import typer
 
 from station import __version__
 from station.cli_batch import batch_app
+from station.cli_rig import calibrate, rig_app
 from station.cli_serve import serve
 from station.cli_support import (
     TRAINING_WIDTH_HELP,
@@ -87,13 +88,15 @@ def scan(
 def process_command(
     scan_dir: Path = typer.Argument(..., help="Scan folder with raw/ and manifest.jsonl."),
     training_width: Optional[int] = typer.Option(None, "--training-width", help=TRAINING_WIDTH_HELP),
+    config: Optional[Path] = typer.Option(None, "--config", help="station.toml whose rig_model poses the scan."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Develop the raws, cut the masks and pose the images (writes images/, masks/, poses/)."""
+    from station.config import load_config
     from station.process.develop_stage import ProcessSettings
     from station.process.stage import process_scan
 
-    result = process_scan(scan_dir, ProcessSettings(training_width=training_width))
+    result = process_scan(scan_dir, ProcessSettings(training_width=training_width), rig_model=load_config(config).rig_model_path())
     emit(result, as_json, lambda r: err_console.print(
         f"process {scan_dir}: {r['develop']['usable_shots']} images, posed by {r['poses']['method']} "
         f"({len(r['poses']['registered'])} registered), flags: {', '.join(r['flags']) or 'none'}"
@@ -243,3 +246,5 @@ def demo(
 
 app.command("serve")(serve)
 app.add_typer(batch_app, name="batch")
+app.add_typer(rig_app, name="rig")
+app.command("calibrate")(calibrate)

@@ -95,8 +95,10 @@ def _open_fake_board(url: str, config: TurntableConfig, stack: ExitStack) -> Tur
     return Turntable.connect(board.port, config)
 
 
-register_camera_scheme("sim", _open_sim_camera)
-register_turntable_scheme("fakegrbl", _open_fake_board)
+def register_sim_schemes() -> None:
+    """Let the rig assembly open `sim://` cameras and `fakegrbl://` boards; sim/ is imported only when one is opened."""
+    register_camera_scheme("sim", _open_sim_camera)
+    register_turntable_scheme("fakegrbl", _open_fake_board)
 
 
 def run_hardware_scan(
@@ -109,6 +111,7 @@ def run_hardware_scan(
     the exposure it really uses. The dashboard passes its own `control` (pause/cancel) and
     `operator` (prompts on the page).
     """
+    register_sim_schemes()
     table = config.turntable
     try:
         with open_rig(table.port, table.driver_config(), config.camera.resolved_url, config.rig.geometry()) as rig:

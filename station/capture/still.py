@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import rawpy
+import tifffile
 
 from station.capture.ptp import PtpCamera
 from station.capture.ptp_codec import DevicePropCode, ObjectFormat, OperationCode
@@ -53,6 +54,31 @@ class RawInfo:
     cfa: str  # e.g. "RGGB", read from the file, never assumed
     width: int
     height: int
+    format: str  # dng, nef, cr2, arw, cr3, raf, orf, rw2, or tiff for another TIFF-based raw
+
+
+_TIFF_MAKERS = {"nikon": "nef", "canon": "cr2", "sony": "arw", "olympus": "orf", "panasonic": "rw2"}
+
+
+def raw_format(data: bytes) -> str:
+    """The raw container, from its magic bytes and, for TIFF-based raws, the DNGVersion or Make tag."""
+    if data[4:11] == b"ftypcrx":
+        return "cr3"
+    if data.startswith(b"FUJIFILM"):
+        return "raf"
+    if data[:4] in (b"IIRO", b"IIRS", b"MMOR"):
+        return "orf"
+    if data[:4] == b"IIU\x00":
+        return "rw2"
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            tags = tif.pages[0].tags
+            if 50706 in tags:
+                return "dng"
+            make = str(tags[271].value).lower() if 271 in tags else ""
+    except (tifffile.TiffFileError, ValueError, IndexError):
+        return "unknown"
+    return next((ext for maker, ext in _TIFF_MAKERS.items() if maker in make), "tiff")
 
 
 def inspect_raw(data: bytes, source: str) -> RawInfo:
@@ -67,7 +93,7 @@ def inspect_raw(data: bytes, source: str) -> RawInfo:
         raise DeviceError(f"{source}: the camera delivered {kind} ({exc}); set it to shoot raw") from None
     if pattern is None or pattern.shape != (2, 2) or pattern.max() >= len(desc):
         raise DeviceError(f"{source}: the raw has no 2x2 Bayer pattern (LibRaw pattern {pattern!r})")
-    return RawInfo("".join(desc[i] for i in pattern.flatten()), int(width), int(height))
+    return RawInfo("".join(desc[i] for i in pattern.flatten()), int(width), int(height), raw_format(data))
 
 
 @dataclass
