@@ -48,7 +48,10 @@ def compare_settings(settings: dict[int, float], table: TurntableSection, rel_to
         if have is None:
             found.append(Finding("turntable", f"${number}", False, f"missing (config expects {want:g})"))
         elif number in TRAVEL_SETTINGS:
-            found.append(Finding("turntable", f"${number}", have >= want, f"{have:g} (travel; config needs >= {want:g})"))
+            enforced = bool(settings.get(20))  # GRBL checks max travel only with soft limits on
+            note = "" if enforced else "; soft limits off ($20=0), so the board does not enforce it"
+            found.append(Finding("turntable", f"${number}", have >= want or not enforced,
+                                 f"{have:g} (travel; config needs >= {want:g}{note})"))
         else:
             ok = abs(have - want) <= rel_tol * max(abs(want), 1.0)
             found.append(Finding("turntable", f"${number}", ok, f"{have:g} (config expects {want:g})"))
@@ -113,8 +116,8 @@ def check_camera(config: StationConfig, table: Turntable | None, stack: ExitStac
     size_ok = (shot.width, shot.height) == (rig.width, rig.height)
     format_ok = cam.raw_format in ("any", shot.format)
     found.append(Finding("camera", "test shot", size_ok and format_ok, f"{shot.width}x{shot.height} {shot.format}, CFA {shot.cfa}"
-                         + ("" if size_ok else f"; [rig] width/height in {config.source} say {rig.width}x{rig.height}")
-                         + ("" if format_ok else f"; [camera] raw_format in {config.source} says {cam.raw_format}")))
+                         + ("" if size_ok else f"; rig.width and rig.height in {config.source} say {rig.width}x{rig.height}")
+                         + ("" if format_ok else f"; camera.raw_format in {config.source} says {cam.raw_format}")))
     return found
 
 
@@ -140,7 +143,7 @@ def rig_check(
     found = check_rig(settings)
     failed = [f for f in found if not f.ok]
     emit({"config": settings.source, "ok": not failed, "findings": [vars(f) for f in found]}, as_json, lambda r: [
-        err_console.print(f"{'ok  ' if f.ok else 'FAIL'} {f.part:9} {f.item:12} {f.detail}", highlight=False, soft_wrap=True)
+        err_console.print(f"{'ok  ' if f.ok else 'FAIL'} {f.part:9} {f.item:12} {f.detail}", highlight=False, markup=False, soft_wrap=True)
         for f in found])
     if failed:
         raise RigCheckFailedError("rig check failed: " + "; ".join(f"{f.part} {f.item}: {f.detail}" for f in failed))

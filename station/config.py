@@ -160,10 +160,8 @@ _ADAPTER = TypeAdapter(StationConfig)
 
 
 def _key(loc: tuple) -> str:
-    parts = [str(p) for p in loc]
-    if len(parts) >= 2 and not parts[1].isdigit():
-        return f"[{parts[0]}] {'.'.join(parts[1:])}"
-    return ".".join(parts)
+    """TOML's dotted-key spelling of a location: turntable.steps_per_deg, with list indexes as [1]."""
+    return "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc).lstrip(".")
 
 
 def parse_config(data: dict, source: str) -> StationConfig:
@@ -188,18 +186,18 @@ def parse_config(data: dict, source: str) -> StationConfig:
 def _check_values(config: StationConfig) -> None:
     src, cam, table, rig = config.source, config.camera, config.turntable, config.rig
     checks = [
-        (cam.exposure_s > 0, "[camera] exposure_s must be positive"),
-        (cam.iso > 0, "[camera] iso must be positive"),
-        (cam.aperture >= 0, "[camera] aperture must be an f-number, or 0 to leave the lens as it is"),
-        (all(v > 0 for v in table.steps_per_deg), "[turntable] steps_per_deg must be positive"),
-        (all(v > 0 for v in table.max_rate_deg_min), "[turntable] max_rate_deg_min must be positive"),
-        (all(v > 0 for v in table.accel_deg_s2), "[turntable] accel_deg_s2 must be positive"),
-        (all(v > 0 for v in table.max_travel_deg), "[turntable] max_travel_deg must be positive"),
-        (table.feed_deg_min > 0, "[turntable] feed_deg_min must be positive"),
+        (cam.exposure_s > 0, "camera.exposure_s must be positive"),
+        (cam.iso > 0, "camera.iso must be positive"),
+        (cam.aperture >= 0, "camera.aperture must be an f-number, or 0 to leave the lens as it is"),
+        (all(v > 0 for v in table.steps_per_deg), "turntable.steps_per_deg must be positive"),
+        (all(v > 0 for v in table.max_rate_deg_min), "turntable.max_rate_deg_min must be positive"),
+        (all(v > 0 for v in table.accel_deg_s2), "turntable.accel_deg_s2 must be positive"),
+        (all(v > 0 for v in table.max_travel_deg), "turntable.max_travel_deg must be positive"),
+        (table.feed_deg_min > 0, "turntable.feed_deg_min must be positive"),
         (rig.width >= 16 and rig.height >= 16 and rig.width % 2 == 0 and rig.height % 2 == 0,
-         "[rig] width and height must be even and at least 16 pixels"),
-        (rig.orbit_radius_m > 0 and rig.focal_px > 0, "[rig] orbit_radius_m and focal_px must be positive"),
-        (config.plan.elevations >= 1 and config.plan.azimuths >= 1, "[plan] elevations and azimuths must be >= 1"),
+         "rig.width and height must be even and at least 16 pixels"),
+        (rig.orbit_radius_m > 0 and rig.focal_px > 0, "rig.orbit_radius_m and focal_px must be positive"),
+        (config.plan.elevations >= 1 and config.plan.azimuths >= 1, "plan.elevations and azimuths must be >= 1"),
     ]
     for ok, message in checks:
         if not ok:

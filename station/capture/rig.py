@@ -98,7 +98,7 @@ def _scheme(url: str) -> str:
 def open_turntable(url: str, config: TurntableConfig, stack: ExitStack) -> Turntable:
     """Connect to the turntable at `url`; it is closed with `stack`."""
     if not url:
-        raise BadInputError("no turntable: give --port or [turntable] port in the config, e.g. grbl:///dev/ttyUSB0")
+        raise BadInputError("no turntable: give --port or turntable.port in the config, e.g. grbl:///dev/ttyUSB0")
     opener = _TURNTABLES.get(_scheme(url))
     table = opener(url, config, stack) if opener else Turntable.connect(url, config)  # a path or a pyserial URL
     stack.callback(table.close)
