@@ -193,22 +193,25 @@ class Gphoto2Camera:
 
     def download(self, folder: str, name: str) -> bytes:
         """The file's bytes, unchanged; deleted from the camera once they are in memory."""
-        gp = self.gp
-        data = self._call(f"download of {folder}/{name}",
-                          lambda cam: bytes(memoryview(cam.file_get(folder, name, gp.GP_FILE_TYPE_NORMAL).get_data_and_size())))
+        def fetch(cam: Any) -> bytes:
+            camera_file = cam.file_get(folder, name, self.gp.GP_FILE_TYPE_NORMAL)  # owns the buffer: keep it alive
+            return bytes(memoryview(camera_file.get_data_and_size()))
+
+        data = self._call(f"download of {folder}/{name}", fetch)
         self._call(f"delete of {folder}/{name}", lambda cam: cam.file_delete(folder, name))
         return data
 
     # -- health --------------------------------------------------------------------------------
-    def _text(self, name: str) -> str | None:
+    def value(self, name: str) -> str | None:
+        """The current value of a config widget, or None when the body has no such widget."""
         try:
             return str(self._widget(name).get_value())
         except DeviceError:
             return None
 
     def report(self) -> CameraReport:
-        manufacturer = self._text("manufacturer") or ""
-        report = CameraReport(model=f"{manufacturer} {self.model}".strip(), battery=self._text("batterylevel"))
+        manufacturer = self.value("manufacturer") or ""
+        report = CameraReport(model=f"{manufacturer} {self.model}".strip(), battery=self.value("batterylevel"))
         storage = self._call("storage query", lambda cam: cam.get_storageinfo())
         if storage:
             report.storage_free_mb = sum(s.freekbytes for s in storage) / 1024.0
@@ -217,7 +220,7 @@ class Gphoto2Camera:
         else:
             report.problems.append("the camera reports no storage (no card?)")
         for name in ("imageformat", "imagequality"):
-            choice = self._text(name)
+            choice = self.value(name)
             if choice is not None:
                 report.raw_formats = (choice,)
                 if not any(word in choice.lower() for word in _RAW_WORDS):
