@@ -118,14 +118,14 @@ class PtpStillCamera:
         return bool(info and prop in info.device_properties_supported)
 
     def apply(self, settings: CameraSettings) -> CameraSettings:
-        """Set exposure, ISO and aperture; returns what the camera will really use."""
+        """Set exposure, ISO and aperture (all or none); returns what the camera will really use."""
+        if settings.aperture and not self._supports(PTP_FNUMBER):
+            raise DeviceError(f"{self.camera.transport.description} has no FNumber property (0x5007); "
+                              "set the aperture on the lens and put aperture = 0 in the config")
         exposure = self.camera.set_exposure(settings.exposure_s)
         iso = self.camera.set_iso(settings.iso)
         aperture = 0.0
         if settings.aperture:
-            if not self._supports(PTP_FNUMBER):
-                raise DeviceError(f"{self.camera.transport.description} has no FNumber property (0x5007); "
-                                  "set the aperture on the lens and put aperture = 0 in the config")
             self.camera.set_prop_value(PTP_FNUMBER, round(settings.aperture * 100))
             aperture = int(self.camera.get_prop_value(PTP_FNUMBER)) / 100  # type: ignore[arg-type]
         return CameraSettings(exposure, iso, aperture)
