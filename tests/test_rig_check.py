@@ -142,3 +142,33 @@ def test_on_real_grbl_firmware_the_check_reads_its_version_and_settings(grbl_sim
     else:  # factory settings: refused, each named with the firmware's value
         assert found["turntable", "$100"]["detail"] == "250 (config expects 44.444)"
         assert not any(found["turntable", item]["ok"] for item in motion)
+
+
+# ---- calibration -------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_calibrate_writes_the_rig_model_where_the_config_says_and_process_reads_it_from_there(tmp_path):
+    from test_poses import ELEVATIONS, make_scan
+
+    from station.process.stage import station_rig_model
+
+    config = tmp_path / "station.toml"
+    config.write_text('rig_model = "models/rig.json"\n')
+    scan, _ = make_scan(tmp_path / "scan", "speckled", azimuths=12, width=640)
+    result = runner.invoke(app, ["process", str(scan.root), "--config", str(config)])
+    assert result.exit_code == 2 and "rig.json: rig model file not found" in " ".join(result.output.split())
+    assert not (scan.root / "stages" / "process.json").exists()
+
+    result = runner.invoke(app, ["calibrate", str(scan.root), "--config", str(config), "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout[result.stdout.index("{"):])
+    assert report["rig_model"] == str(tmp_path / "models" / "rig.json") and report["views"] == 24
+    assert report["residuals"]["axis_tilt_from_nominal_deg"] < 0.5  # the simulated rig's axis is the nominal one
+    model = station_rig_model(scan, tmp_path / "models" / "rig.json")
+    assert model.kind == "calibrated" and sorted(model.elevation_poses) == list(ELEVATIONS)
+
+
+def test_calibrate_needs_somewhere_to_write_and_a_scan_made_by_station_scan(tmp_path):
+    result = runner.invoke(app, ["calibrate", str(tmp_path)])
+    assert result.exit_code == 2 and "give --out" in result.output
+    result = runner.invoke(app, ["calibrate", str(tmp_path), "--out", str(tmp_path / "m.json")])
+    assert result.exit_code == 2 and "no rig and plan recorded" in " ".join(result.output.split())

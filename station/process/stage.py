@@ -44,10 +44,11 @@ def process_scan(
     scan = ScanFolder(scan_root)
     if not scan.root.is_dir():
         raise BadInputError(f"{scan.root}: scan folder not found")
+    prior = station_rig_model(scan, rig_model)  # a missing rig model is refused before the long develop
     developed = develop_scan(scan, develop)
     if not developed.usable_shots:
         raise BadInputError(f"{scan.root}: no usable shot after develop; see the per-frame flags in stages/")
-    posed = pose_scan(scan, poses, station_rig_model(scan, rig_model))
+    posed = pose_scan(scan, poses, prior)
     masks_across_rings = refine_masks_across_rings(scan, developed, develop, cross_view)
     flags = sorted({flag for frame in developed.frames for flag in frame.flags} | set(posed.flags))
     result = {"develop": developed.to_json(), "poses": posed.to_dict(), "masks_across_rings": masks_across_rings,
