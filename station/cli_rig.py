@@ -127,6 +127,12 @@ def check_rig(config: StationConfig) -> list[Finding]:
         return found + check_camera(config, table, stack)
 
 
+def _print_findings(report: dict) -> None:
+    for f in report["findings"]:
+        line = f"{'ok  ' if f['ok'] else 'FAIL'} {f['part']:9} {f['item']:12} {f['detail']}"
+        err_console.print(line, highlight=False, markup=False, soft_wrap=True)
+
+
 @rig_app.command("check")
 @exits_on_station_errors
 def rig_check(
@@ -142,9 +148,7 @@ def rig_check(
     settings = load_config(config).with_overrides(port=port, camera=camera)
     found = check_rig(settings)
     failed = [f for f in found if not f.ok]
-    emit({"config": settings.source, "ok": not failed, "findings": [vars(f) for f in found]}, as_json, lambda r: [
-        err_console.print(f"{'ok  ' if f.ok else 'FAIL'} {f.part:9} {f.item:12} {f.detail}", highlight=False, markup=False, soft_wrap=True)
-        for f in found])
+    emit({"config": settings.source, "ok": not failed, "findings": [vars(f) for f in found]}, as_json, _print_findings)
     if failed:
         raise RigCheckFailedError("rig check failed: " + "; ".join(f"{f.part} {f.item}: {f.detail}" for f in failed))
 
