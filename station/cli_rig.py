@@ -12,16 +12,16 @@ import math
 from contextlib import ExitStack
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 
-from station.capture.rig import CameraContext, RigCamera, open_camera, open_turntable
-from station.capture.still import CameraSettings, inspect_raw
 from station.cli_support import emit, err_console, exits_on_station_errors
-from station.config import StationConfig, TurntableSection, load_config
 from station.errors import BadInputError, DeviceError, StationError
-from station.turntable.grbl import Turntable
+
+if TYPE_CHECKING:  # the devices' modules load only when a command runs: `station --help` stays quick
+    from station.config import StationConfig, TurntableSection
+    from station.turntable.grbl import Turntable
 
 rig_app = typer.Typer(no_args_is_help=True, help="Check the rig the config describes.")
 TRAVEL_SETTINGS = (130, 131, 133)  # max travel: the rig needs at least the configured value
@@ -73,6 +73,8 @@ def _check_move(table: Turntable, limits: tuple[float, float]) -> Finding:
 
 def check_turntable(config: StationConfig, stack: ExitStack) -> tuple[list[Finding], Turntable | None]:
     """Firmware, settings against the config, travel, and one small move and back."""
+    from station.capture.rig import open_turntable
+
     section = config.turntable
     # The driver refuses a board whose motion settings differ; the check reports every one instead.
     lenient = replace(section.driver_config(), settings_rel_tol=math.inf)
@@ -93,9 +95,12 @@ def check_turntable(config: StationConfig, stack: ExitStack) -> tuple[list[Findi
 
 def check_camera(config: StationConfig, table: Turntable | None, stack: ExitStack) -> list[Finding]:
     """Model, battery, storage and raw support, the exposure the camera takes, then one test shot."""
+    from station.capture.rig import CameraContext, open_camera
+    from station.capture.still import CameraSettings, inspect_raw
+
     cam, rig = config.camera, config.rig
     try:
-        camera: RigCamera = open_camera(cam.resolved_url, CameraContext(rig.geometry(), table, stack))
+        camera = open_camera(cam.resolved_url, CameraContext(rig.geometry(), table, stack))
         report = camera.report()
     except StationError as exc:
         return [Finding("camera", "connect", False, str(exc))]
@@ -143,6 +148,7 @@ def rig_check(
 ) -> None:
     """Open the turntable and camera, compare them with the config, make one small move and one test shot."""
     from station.cli_scan import register_sim_schemes
+    from station.config import load_config
 
     register_sim_schemes()
     settings = load_config(config).with_overrides(port=port, camera=camera)
@@ -161,6 +167,7 @@ def calibrate(
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Fit the rig model (turntable axis, camera pose per ring, intrinsics) to a free SfM run of one scan."""
+    from station.config import load_config
     from station.process.develop_stage import develop_scan
     from station.process.poses import PoseSettings, calibrate_from_scan
     from station.process.stage import station_rig_model
