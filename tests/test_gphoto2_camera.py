@@ -184,3 +184,14 @@ def test_a_camera_that_went_away_is_opened_again_with_its_settings(vcamera):
     result = json.loads(done.stdout.strip().splitlines()[-1])
     assert result["port"] == "usb:001,001" and result["sizes"] == [raw.stat().st_size] * 2
     assert result["shutter"] == "0.1000s" and result["used"] == [0.1, 5.6]
+
+
+def test_a_camera_url_naming_another_port_fails_listing_the_cameras_detected(tmp_path, vcamera):
+    raw, env = vcamera
+    config = write_config(tmp_path, extra='url = "gphoto2://usb:009,009"')
+    done = subprocess.run([sys.executable, "-m", "station", "rig", "check", "--config", str(config), "--json"],
+                          env=env, capture_output=True, text=True, timeout=300)
+    found = {(f["part"], f["item"]): f for f in json.loads(done.stdout)["findings"]}
+    assert done.returncode == 3
+    assert "no libgphoto2 camera on usb:009,009" in found["camera", "connect"]["detail"]
+    assert "detected: Nikon DSC D750 on usb:001,001" in found["camera", "connect"]["detail"]

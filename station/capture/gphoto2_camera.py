@@ -106,7 +106,8 @@ class Gphoto2Camera:
                 camera.set_port_info(ports[index])
             camera.init()
         except gp.GPhoto2Error as exc:
-            detected = [f"{name} on {path}" for name, path in gp.Camera.autodetect()]
+            found = gp.Camera.autodetect()
+            detected = [f"{found.get_name(i)} on {found.get_value(i)}" for i in range(found.count())]
             raise DeviceDisconnectedError(f"no libgphoto2 camera on {self.port or 'any port'} ({exc}); "
                                           f"detected: {', '.join(detected) or 'none'}") from None
         self._camera = camera
