@@ -166,7 +166,10 @@ def calibrate(
     out: Optional[Path] = typer.Option(None, "--out", help="Write the rig model here instead."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
-    """Fit the rig model (turntable axis, camera pose per ring, intrinsics) to a free SfM run of one scan."""
+    """Fit the rig model (turntable axis, camera pose per ring) to a free SfM run of one scan.
+
+    The intrinsics stay those of the [rig] section the scan recorded: the SfM run holds them fixed.
+    """
     from station.config import load_config
     from station.process.develop_stage import develop_scan
     from station.process.poses import PoseSettings, calibrate_from_scan
