@@ -68,7 +68,7 @@ class MissingWidgetError(DeviceError):
 
 @dataclass
 class PendingGphoto2File:
-    """A file the camera has stored; `download` fetches it, checks it is a raw, and deletes it from the card."""
+    """A file the camera has stored; `download` fetches it and deletes it from the card."""
 
     camera: Gphoto2Camera
     folder: str
@@ -79,7 +79,7 @@ class PendingGphoto2File:
 
 
 class Gphoto2Camera:
-    """One camera libgphoto2 drives; reopened once after the body went away (USB unplug, power cycle)."""
+    """One camera libgphoto2 drives; after the body went away (USB unplug, power cycle) the next call opens it again."""
 
     def __init__(self, port: str | None) -> None:
         import gphoto2
@@ -93,7 +93,7 @@ class Gphoto2Camera:
 
     @property
     def name(self) -> str:
-        return f"gphoto2 camera {self.model or ''} on {self.port or 'auto'}".replace("  ", " ")
+        return " ".join(p for p in ("gphoto2 camera", self.model, "on", self.port or "any port") if p)
 
     def _open(self) -> None:
         gp = self.gp
@@ -207,7 +207,7 @@ class Gphoto2Camera:
         """The current value of a config widget, or None when the body has no such widget."""
         try:
             return str(self._widget(name).get_value())
-        except DeviceError:
+        except MissingWidgetError:
             return None
 
     def report(self) -> CameraReport:
@@ -226,6 +226,8 @@ class Gphoto2Camera:
                 report.raw_formats = (choice,)
                 if not any(word in choice.lower() for word in _RAW_WORDS):
                     report.problems.append(f"'{name}' is {choice!r}, not a raw format: set the camera to shoot raw")
+                elif "+" in choice:  # raw plus JPEG: one capture would leave the second file on the card
+                    report.problems.append(f"'{name}' is {choice!r}: set raw only, without the JPEG")
         return report
 
     def close(self) -> None:
