@@ -10,6 +10,7 @@ import typer
 
 from station import __version__
 from station.cli_batch import batch_app
+from station.cli_rig import calibrate, rig_app
 from station.cli_serve import serve
 from station.cli_support import (
     TRAINING_WIDTH_HELP,
@@ -45,26 +46,29 @@ def scan(
     out: Path = typer.Option(..., "--out", help="Scan folder to create or resume."),
     sim: bool = typer.Option(False, "--sim", help="Scan on the simulated rig."),
     stone: Optional[str] = typer.Option(None, "--stone", help="Simulated stone: mesh path, seed, or look:seed."),
-    port: Optional[str] = typer.Option(None, "--port", help="Turntable serial device or pyserial URL."),
-    camera: str = typer.Option("usb", "--camera", help="usb (PTP camera) or sim (simulated camera)."),
-    elevations: int = typer.Option(6, "--elevations", min=1),
-    azimuths: int = typer.Option(40, "--azimuths", min=1),
+    port: Optional[str] = typer.Option(None, "--port", help="Turntable URL (grbl:///dev/ttyUSB0), device or pyserial URL."),
+    camera: Optional[str] = typer.Option(None, "--camera", help="ptp, gphoto2, sim, or a camera URL (gphoto2://usb:001,004)."),
+    config: Optional[Path] = typer.Option(None, "--config", help="station.toml describing the rig (docs/operator.md)."),
+    elevations: Optional[int] = typer.Option(None, "--elevations", min=1),
+    azimuths: Optional[int] = typer.Option(None, "--azimuths", min=1),
     size: str = typer.Option("320x240", "--size", help="Simulated sensor size WxH."),
     time_scale: float = typer.Option(0.05, "--time-scale", help="Simulated motion/exposure time factor."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Shoot (or resume) a 6x40 hemisphere scan: plates first, then every shot; nothing is ever re-shot twice."""
     from station.cli_scan import run_hardware_scan, run_sim_scan
+    from station.config import load_config
 
     width, height = parse_size(size)
     started = time.monotonic()
     with progress_reporter("scan") as progress:
         if sim:
-            summary = run_sim_scan(out, stone, elevations, azimuths, (width, height), time_scale, progress)
-        elif port:
-            summary = run_hardware_scan(out, port, camera, elevations, azimuths, (width, height), progress)
+            summary = run_sim_scan(out, stone, elevations or 6, azimuths or 40, (width, height), time_scale, progress)
+        elif port or config:
+            rig_config = load_config(config).with_overrides(port=port, camera=camera, elevations=elevations, azimuths=azimuths)
+            summary = run_hardware_scan(out, rig_config, progress)
         else:
-            raise BadInputError("scan: give --sim, or --port DEVICE for a real turntable")
+            raise BadInputError("scan: give --sim, or --config station.toml / --port DEVICE for a real rig")
     result = {
         "scan": str(out),
         "frames": summary.total,
@@ -84,13 +88,15 @@ def scan(
 def process_command(
     scan_dir: Path = typer.Argument(..., help="Scan folder with raw/ and manifest.jsonl."),
     training_width: Optional[int] = typer.Option(None, "--training-width", help=TRAINING_WIDTH_HELP),
+    config: Optional[Path] = typer.Option(None, "--config", help="station.toml whose rig_model poses the scan."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Develop the raws, cut the masks and pose the images (writes images/, masks/, poses/)."""
+    from station.config import load_config
     from station.process.develop_stage import ProcessSettings
     from station.process.stage import process_scan
 
-    result = process_scan(scan_dir, ProcessSettings(training_width=training_width))
+    result = process_scan(scan_dir, ProcessSettings(training_width=training_width), rig_model=load_config(config).rig_model_path())
     emit(result, as_json, lambda r: err_console.print(
         f"process {scan_dir}: {r['develop']['usable_shots']} images, posed by {r['poses']['method']} "
         f"({len(r['poses']['registered'])} registered), flags: {', '.join(r['flags']) or 'none'}"
@@ -240,3 +246,5 @@ def demo(
 
 app.command("serve")(serve)
 app.add_typer(batch_app, name="batch")
+app.add_typer(rig_app, name="rig")
+app.command("calibrate")(calibrate)

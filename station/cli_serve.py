@@ -34,10 +34,12 @@ def _sim_scans(size: tuple[int, int], time_scale: float) -> ScanFunction:
 
 def _hardware_scans(device: str, camera: str, size: tuple[int, int]) -> ScanFunction:
     from station.cli_scan import run_hardware_scan
+    from station.config import StationConfig
 
     def scan(out, request, hooks):
-        return run_hardware_scan(out, device, camera, request.elevations, request.azimuths, size, hooks.progress,
-                                 control=hooks.control, operator=hooks.operator)
+        config = StationConfig().with_overrides(port=device, camera=camera, elevations=request.elevations,
+                                                azimuths=request.azimuths)
+        return run_hardware_scan(out, config, hooks.progress, control=hooks.control, operator=hooks.operator)
 
     return scan
 

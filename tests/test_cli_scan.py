@@ -43,3 +43,47 @@ def test_a_small_simulated_scan_reports_its_frames_as_json(tmp_path):
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout[result.stdout.index("{"):])
     assert report["frames"] == 4 and report["shot_now"] == 4
+
+
+def test_nothing_in_station_imports_sim_except_the_cli_scan_wiring():
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "station"
+    importers = set()
+    for path in root.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else [])
+            if any(n == "sim" or n.startswith("sim.") for n in names):
+                importers.add(path.relative_to(root.parent).as_posix())
+    assert importers == {"station/cli_scan.py"}
+
+
+def test_rig_urls_name_what_is_wrong(tmp_path):
+    from contextlib import ExitStack
+
+    import pytest
+
+    from station.capture.rig import CameraContext, open_camera, open_turntable
+    from station.errors import BadInputError
+    from station.rig_geometry import RigGeometry
+    from station.turntable.grbl import TurntableConfig
+
+    with ExitStack() as stack:
+        context = CameraContext(RigGeometry(), None, stack)
+        with pytest.raises(BadInputError, match="unknown scheme; expected one of gphoto2://, ptp://"):
+            open_camera("webcam://0", context)
+        with pytest.raises(BadInputError, match="vendor and product are hexadecimal"):
+            open_camera("ptp://usb?vendor=canon", context)
+        with pytest.raises(BadInputError, match="only ptp://usb"):
+            open_camera("ptp://ip/192.168.0.2", context)
+        with pytest.raises(BadInputError, match="grbl:///dev/ttyUSB0"):
+            open_turntable("grbl://", TurntableConfig(), stack)
+        with pytest.raises(BadInputError, match="no turntable"):
+            open_turntable("", TurntableConfig(), stack)
+
+
+def test_a_hardware_scan_from_the_cli_needs_a_config_or_a_port_and_names_a_bad_camera(tmp_path):
+    result = runner.invoke(app, ["scan", "--port", "fakegrbl://", "--camera", "webcam", "--out", str(tmp_path / "s")])
+    assert result.exit_code == 2 and "--camera 'webcam'" in result.output

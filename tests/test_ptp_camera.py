@@ -273,3 +273,34 @@ def test_default_backend_missing_raises_camera_not_found():
         pytest.skip("libusb is installed: the answer depends on what is plugged in")
     with pytest.raises(CameraNotFoundError, match="no USB backend"):
         open_ptp_camera()
+
+
+def test_the_station_camera_over_ptp_reports_itself_and_the_exposure_it_really_uses():
+    from station.capture.still import CameraSettings, PtpStillCamera
+
+    sim, camera, source = make_rig()
+    still = PtpStillCamera(camera)
+    try:
+        used = still.apply(CameraSettings(1.0 / 30.0, 400))
+        assert used == CameraSettings(0.0333, 400, 0.0)  # the body's 0.1 ms step, read back
+        report = still.report()
+        assert report.model == "station Sim PTP Camera" and report.raw_formats == ("dng",) and report.problems == []
+        assert report.battery is None  # the simulated body does not list BatteryLevel
+        with pytest.raises(DeviceError, match="no FNumber property"):
+            still.apply(CameraSettings(0.01, 100, 8.0))
+        assert still.trigger().download() == FRAME and source.shots[-1].iso == 400
+    finally:
+        still.close()
+
+
+def test_a_ptp_body_without_raw_capture_is_a_problem_in_its_report():
+    from station.capture.still import PtpStillCamera
+
+    sim, camera, _ = make_rig()
+    sim.info = replace(sim.info, capture_formats=(ObjectFormat.EXIF_JPEG,))
+    camera.close()
+    still = PtpStillCamera(open_ptp_camera(backend=SimUsbBackend(sim), config=FAST))
+    try:
+        assert still.report().problems == ["the camera offers no raw capture format (DNG or TIFF) over PTP"]
+    finally:
+        still.close()

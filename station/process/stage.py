@@ -1,14 +1,12 @@
 """`station process`: develop, mask and pose one scan folder, cut the masks again across rings, then mark
 the stage done.
 
-The rig model comes from, in order: a calibrated station model (`STATION_RIG_MODEL` or the
-`rig_model` argument), the nominal rig recorded in scan.json, or none at all (pure SfM, for scans
-made elsewhere).
+The rig model comes from, in order: the calibrated station model (`rig_model`, the path the station
+config names), the nominal rig recorded in scan.json, or none at all (pure SfM, for scans made elsewhere).
 """
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 from station.errors import BadInputError
@@ -22,11 +20,10 @@ from station.scanfolder import ScanFolder
 
 def station_rig_model(scan: ScanFolder, rig_model: Path | None) -> RigModel | None:
     """The best rig prior for this scan, or None when the scan carries no rig at all."""
-    path = rig_model or (Path(os.environ["STATION_RIG_MODEL"]) if os.environ.get("STATION_RIG_MODEL") else None)
-    if path is not None:
-        if not path.is_file():
-            raise BadInputError(f"{path}: rig model file not found")
-        return RigModel.load(path)
+    if rig_model is not None:
+        if not rig_model.is_file():
+            raise BadInputError(f"{rig_model}: rig model file not found; write it with `station calibrate`")
+        return RigModel.load(rig_model)
     if not scan.scan_json.exists():
         return None
     record = scan.read_scan_json()
@@ -47,10 +44,11 @@ def process_scan(
     scan = ScanFolder(scan_root)
     if not scan.root.is_dir():
         raise BadInputError(f"{scan.root}: scan folder not found")
+    prior = station_rig_model(scan, rig_model)  # a missing rig model is refused before the long develop
     developed = develop_scan(scan, develop)
     if not developed.usable_shots:
         raise BadInputError(f"{scan.root}: no usable shot after develop; see the per-frame flags in stages/")
-    posed = pose_scan(scan, poses, station_rig_model(scan, rig_model))
+    posed = pose_scan(scan, poses, prior)
     masks_across_rings = refine_masks_across_rings(scan, developed, develop, cross_view)
     flags = sorted({flag for frame in developed.frames for flag in frame.flags} | set(posed.flags))
     result = {"develop": developed.to_json(), "poses": posed.to_dict(), "masks_across_rings": masks_across_rings,
