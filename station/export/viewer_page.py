@@ -82,6 +82,7 @@ label{{margin-right:12px}}#view{{width:100vw;height:100vh}}</style></head>
   }};
   toggle("splat");
   toggle("mesh");
+  window.stationViewer = shown;
   document.body.dataset.ready = "1";
 }})();
 </script></body></html>

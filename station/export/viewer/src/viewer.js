@@ -79,9 +79,12 @@ export async function render(container, opts) {
   if (!opts.interactive) renderer.setAnimationLoop(null); // a still: stop drawing once settled
   return {
     show(name, visible) {
-      if (parts[name]) parts[name].visible = visible;
+      // Spark keeps drawing a hidden SplatMesh, so a part is taken out of the scene instead
+      if (parts[name] && visible) scene.add(parts[name]);
+      if (parts[name] && !visible) scene.remove(parts[name]);
     },
     canvas: renderer.domElement,
+    settle: nextFrames, // resolves after that many more frames have been drawn
     dispose() {
       renderer.setAnimationLoop(null);
       renderer.dispose();
