@@ -246,6 +246,9 @@ def test_sos_reads_foreign_plys_through_the_same_validator(tmp_path: Path):
     path.write_bytes(_ply([("vertex", 5, _vertex_props())], body))
     with pytest.raises(BadInputError, match="foreign.ply: PLY body is .* longer"):
         read_inria_ply(path)
+    write_splat(path, random_model(10, degree=0))  # an asset's splat.ply: y-down, not the scan's frame
+    with pytest.raises(BadInputError, match="foreign.ply: a shipped asset splat, written y-down"):
+        read_inria_ply(path)
 
 
 def test_ply_reader_refuses_ascii_and_non_splat_ply(tmp_path: Path):

@@ -16,9 +16,7 @@ import numpy as np
 
 from station.errors import BadInputError
 from station.export.splat_model import TURNTABLE_TO_YDOWN, SplatModel, sh_degree_for_rest
-from station.ngs.inria_ply import vertex_table
-
-COMMENT = "station splat: metres, origin turntable centre on the plate, y down (3DGS convention)"
+from station.ngs.inria_ply import VIEWER_FRAME_COMMENT, vertex_table
 _BASE = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
 _TAIL = ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
 
@@ -32,7 +30,7 @@ def encode_ply(model: SplatModel) -> bytes:
     """INRIA PLY bytes of a turntable-frame model, written y-down."""
     model = model.rotated(TURNTABLE_TO_YDOWN)
     names = ply_property_names(model.sh_degree)
-    header = ["ply", "format binary_little_endian 1.0", f"comment {COMMENT}", f"element vertex {model.num}"]
+    header = ["ply", "format binary_little_endian 1.0", f"comment {VIEWER_FRAME_COMMENT}", f"element vertex {model.num}"]
     header += [f"property float {name}" for name in names]
     header.append("end_header")
     rest = model.sh_rest.transpose(0, 2, 1).reshape(model.num, -1)  # [N, 3*K] channel-major
@@ -53,7 +51,7 @@ def encode_ply(model: SplatModel) -> bytes:
 
 def decode_ply(data: bytes, source: Path) -> SplatModel:
     """Turntable-frame model of INRIA PLY bytes; BadInputError naming `source` otherwise."""
-    table = vertex_table(data, source)
+    table, _ = vertex_table(data, source)
     names = list(table.dtype.names)
     missing = sorted(set(_BASE[:3] + _BASE[6:] + _TAIL) - set(names))
     if missing:

@@ -25,6 +25,9 @@ PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": 
 REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
             "rot_0", "rot_1", "rot_2", "rot_3"]
 MAX_HEADER = 64 * 1024
+# station's asset writer marks its y-down splats (station.export.ply) with this comment; --splat takes
+# a PLY in the scan's own frame, so it refuses one rather than score it lying on its side.
+VIEWER_FRAME_COMMENT = "station splat: metres, origin turntable centre on the plate, y down (3DGS convention)"
 MAX_LIST_ROWS = 5_000_000  # a list element (faces) is walked row by row; more than this is not a splat file
 
 
@@ -37,8 +40,8 @@ class _Element:
     order: list[str] = field(default_factory=list)
 
 
-def _header(data: bytes, source: Path) -> tuple[list[_Element], int]:
-    """Elements in file order and the body's offset; BadInputError on anything malformed."""
+def _header(data: bytes, source: Path) -> tuple[list[_Element], int, list[str]]:
+    """Elements in file order, the body's offset and the comments; BadInputError on anything malformed."""
     if not data.startswith(b"ply\n") and not data.startswith(b"ply\r\n"):
         raise BadInputError(f"{source}: not a PLY file (no 'ply' magic line)")
     end = data.find(b"end_header", 0, MAX_HEADER)
@@ -50,9 +53,11 @@ def _header(data: bytes, source: Path) -> tuple[list[_Element], int]:
     except UnicodeDecodeError as exc:
         raise BadInputError(f"{source}: PLY header is not ASCII") from exc
     elements: list[_Element] = []
-    fmt = None
+    fmt, comments = None, []
     for raw in lines:
         words = raw.split()
+        if words[:1] == ["comment"]:
+            comments.append(raw.split(None, 1)[1] if len(words) > 1 else "")
         if not words or words[0] in ("comment", "obj_info"):
             continue
         if words[0] == "format" and fmt is None:
@@ -76,7 +81,7 @@ def _header(data: bytes, source: Path) -> tuple[list[_Element], int]:
             raise BadInputError(f"{source}: unexpected PLY header line {raw!r}")
     if fmt != "binary_little_endian 1.0":
         raise BadInputError(f"{source}: PLY format {fmt!r}; only 'binary_little_endian 1.0' splats are read")
-    return elements, newline + 1
+    return elements, newline + 1, comments
 
 
 def _list_element_size(data: bytes, offset: int, element: _Element, source: Path) -> int:
@@ -99,9 +104,10 @@ def _list_element_size(data: bytes, offset: int, element: _Element, source: Path
     return offset - start
 
 
-def vertex_table(data: bytes, source: Path) -> np.ndarray:
-    """The `vertex` element as a structured array: the one validator every splat PLY reader uses."""
-    elements, offset = _header(data, source)
+def vertex_table(data: bytes, source: Path) -> tuple[np.ndarray, list[str]]:
+    """(the `vertex` element as a structured array, the header's comments): the one validator every
+    splat PLY reader uses."""
+    elements, offset, comments = _header(data, source)
     vertex = [e for e in elements if e.name == "vertex"]
     if not vertex:
         raise BadInputError(f"{source}: PLY has no 'element vertex N'")
@@ -127,14 +133,17 @@ def vertex_table(data: bytes, source: Path) -> np.ndarray:
             f"{source}: PLY body is {len(data) - offset} bytes longer than its header promises "
             f"(element counts too small, or trailing data)"
         )
-    return table
+    return table, comments
 
 
 def read_inria_ply(path: Path) -> Gaussians:
     path = Path(path)
     if not path.is_file():
         raise BadInputError(f"{path}: splat PLY does not exist")
-    rows = vertex_table(path.read_bytes(), path)
+    rows, comments = vertex_table(path.read_bytes(), path)
+    if VIEWER_FRAME_COMMENT in comments:
+        raise BadInputError(f"{path}: a shipped asset splat, written y-down for viewers; --splat takes a PLY in the "
+                            "scan's turntable frame (+z up), such as another trainer's model of this scan")
     count, names = len(rows), list(rows.dtype.names)
     if count == 0:
         raise BadInputError(f"{path}: the PLY holds no splats ('element vertex 0')")
