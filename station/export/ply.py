@@ -30,7 +30,8 @@ def encode_ply(model: SplatModel) -> bytes:
     """INRIA PLY bytes of a turntable-frame model, written y-down."""
     model = model.rotated(TURNTABLE_TO_YDOWN)
     names = ply_property_names(model.sh_degree)
-    header = ["ply", "format binary_little_endian 1.0", f"comment {VIEWER_FRAME_COMMENT}", f"element vertex {model.num}"]
+    header = ["ply", "format binary_little_endian 1.0", f"comment {VIEWER_FRAME_COMMENT}"]
+    header.append(f"element vertex {model.num}")
     header += [f"property float {name}" for name in names]
     header.append("end_header")
     rest = model.sh_rest.transpose(0, 2, 1).reshape(model.num, -1)  # [N, 3*K] channel-major
@@ -63,7 +64,8 @@ def decode_ply(data: bytes, source: Path) -> SplatModel:
     count, k = len(table), len(rest_names) // 3
 
     def take(*keys: str) -> np.ndarray:
-        return np.stack([table[key].astype(np.float32) for key in keys] or [np.zeros(0)] * count, axis=-1).reshape(count, len(keys))
+        columns = [table[key].astype(np.float32) for key in keys]
+        return np.stack(columns, axis=-1) if columns else np.zeros((count, 0), np.float32)
 
     rest = take(*[f"f_rest_{i}" for i in range(3 * k)]).reshape(count, 3, k).transpose(0, 2, 1)
     try:

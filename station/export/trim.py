@@ -56,7 +56,8 @@ def shipped_splat(model: SplatModel, surface: Gaussians, infill: Infill, scene: 
     kept_all = bool(drop.all())  # nothing would be left to ship: the trained splat ships instead
     drop &= not kept_all
     keep = torch.from_numpy(~drop)
-    after = evaluate(Gaussians({name: value.detach()[keep] for name, value in surface.params.items()}), infill, scene.test)
+    shipped = Gaussians({name: value.detach()[keep] for name, value in surface.params.items()})
+    after = evaluate(shipped, infill, scene.test)
     block = {
         "trained_gaussians": model.num,
         "shipped_gaussians": int((~drop).sum()),

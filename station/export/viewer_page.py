@@ -95,5 +95,6 @@ def write_viewer(path: Path, title: str, splat_spz: Path, mesh_glb: Path | None,
     if bundle is None:
         return f"not written: the viewer bundle is not built ({BUILD_HINT})"
     mesh = Path(mesh_glb).read_bytes() if mesh_glb is not None and Path(mesh_glb).is_file() else None
-    atomic_write_text(Path(path), viewer_html(title, bundle, Path(splat_spz).read_bytes(), mesh, ViewerCamera.framing(lo, hi)))
+    page = viewer_html(title, bundle, Path(splat_spz).read_bytes(), mesh, ViewerCamera.framing(lo, hi))
+    atomic_write_text(Path(path), page)
     return "written"

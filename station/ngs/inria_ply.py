@@ -87,7 +87,8 @@ def _header(data: bytes, source: Path) -> tuple[list[_Element], int, list[str]]:
 def _list_element_size(data: bytes, offset: int, element: _Element, source: Path) -> int:
     """Bytes taken by an element with list properties, walked row by row."""
     if element.count > MAX_LIST_ROWS:
-        raise BadInputError(f"{source}: PLY element {element.name!r} has {element.count} rows, more than a splat file holds")
+        raise BadInputError(
+            f"{source}: PLY element {element.name!r} has {element.count} rows, more than a splat file holds")
     start, types = offset, dict(element.scalars)
     for _ in range(element.count):
         for name in element.order:
