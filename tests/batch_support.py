@@ -20,10 +20,7 @@ from PIL import Image
 
 from station.batch.stages import STAGES, TEMP_FILE, finished_record, read_record
 from station.cli_scan import run_sim_scan
-from station.export.gltf import read_glb
-from station.export.ply import read_ply
 from station.export.splat_formats import read_splat
-from station.export.spz import read_spz
 from station.process.images_io import read_exr
 from station.process.transforms import read_transforms
 from station.scanfolder import ScanFolder
@@ -89,8 +86,8 @@ def verify_scan(root: Path) -> list[str]:
         torch.load(scan.model_dir / name, weights_only=True)
     json.loads((scan.model_dir / "train_metrics.json").read_text())
     asset = scan.asset_dir
-    read_ply(asset / "splat.ply"), read_ply(asset / "infill.ply")
-    read_splat(asset / "splat.splat"), read_spz(asset / "splat.spz"), read_glb(asset / "splat.glb")
+    for name in ("splat.ply", "infill.ply", "splat.splat", "splat.spz", "splat.glb"):
+        read_splat(asset / name)
     for name in ("mesh.ply", "mesh.glb"):
         if len(trimesh.load_mesh(asset / name).faces) == 0:
             problems.append(f"asset/{name}: no faces")

@@ -22,12 +22,9 @@ import trimesh
 
 from sim.stone import procedural_stone
 from station.errors import BadInputError
-from station.export.gltf import read_glb
 from station.export.mesh import check_mesh
-from station.export.ply import read_ply
 from station.export.splat_formats import read_splat
 from station.export.splat_model import matrix_to_quat
-from station.export.spz import read_spz
 from station.export.stage import ExportConfig, ExportReport, export_scan, splat_model_of
 from station.ngs.conventions import rgb_to_sh
 from station.ngs.gaussians import Gaussians
@@ -156,18 +153,23 @@ def test_every_asset_file_is_written(opaque: ExportReport):
     assert not list(asset.glob("*.tmp*"))
 
 
-def test_the_splat_files_reload_as_the_trained_surface(opaque: ExportReport, built: ScanFolder):
+def test_the_splat_files_reload_as_the_trained_surface_less_the_trimmed(opaque: ExportReport, built: ScanFolder):
     surface = Gaussians.from_state_dict(torch.load(built.model_dir / "surface.pt", weights_only=True)["params"])
-    expected = splat_model_of(surface)
-    ply = read_ply(opaque.files["splat.ply"])
-    for name in ("means", "scales_log", "quats", "opacity_logit", "sh_dc", "sh_rest"):
+    trained = splat_model_of(surface)
+    ply = read_splat(opaque.files["splat.ply"])
+    assert ply.num == opaque.metrics["shipped_splat"]["shipped_gaussians"] <= trained.num
+    index = {tuple(row): i for i, row in enumerate(trained.means.tolist())}
+    expected = trained.subset(np.array([index[tuple(row)] for row in ply.means.tolist()], dtype=np.int64))
+    for name in ("means", "scales_log", "opacity_logit", "sh_dc"):
         np.testing.assert_array_equal(getattr(ply, name), getattr(expected, name), err_msg=name)
-    for reader, name in ((read_splat, "splat.splat"), (read_spz, "splat.spz"), (read_glb, "splat.glb")):
-        assert reader(opaque.files[name]).num == expected.num, name
+    np.testing.assert_allclose(ply.quats, expected.quats, atol=1e-6)
+    np.testing.assert_allclose(ply.sh_rest, expected.sh_rest, atol=1e-5)
+    for name in ("splat.splat", "splat.spz", "splat.glb"):
+        assert read_splat(opaque.files[name]).num == ply.num, name
 
 
 def test_the_infill_ply_is_opaque_grey_and_counts_the_infill(opaque: ExportReport):
-    infill = read_ply(opaque.files["infill.ply"])
+    infill = read_splat(opaque.files["infill.ply"])
     assert infill.num == opaque.metrics["num_infill"] > 0
     assert infill.opacity().min() > 0.999
     np.testing.assert_allclose(infill.rgb(), 0.5, atol=1e-6)

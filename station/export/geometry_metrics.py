@@ -85,7 +85,14 @@ def compare_meshes(
 def fraction_outside_visual_hull(
     means: np.ndarray, masks: np.ndarray, Ks: np.ndarray, c2ws: np.ndarray, tolerance_px: int = 0
 ) -> float:
-    """Fraction of Gaussian centres that some view sees outside its foreground mask.
+    """Fraction of Gaussian centres that some view sees outside its foreground mask."""
+    return float(outside_visual_hull(means, masks, Ks, c2ws, tolerance_px).mean()) if len(means) else 0.0
+
+
+def outside_visual_hull(
+    means: np.ndarray, masks: np.ndarray, Ks: np.ndarray, c2ws: np.ndarray, tolerance_px: int = 0
+) -> np.ndarray:
+    """[N] bool: the Gaussian centres that some view sees outside its foreground mask.
 
     means [N, 3]; masks [V, H, W] bool (True = stone); Ks [V, 3, 3]; c2ws [V, 4, 4] OpenCV.
     A centre that projects outside a view's frame or behind its camera is not judged by it.
@@ -95,8 +102,6 @@ def fraction_outside_visual_hull(
     masks = np.asarray(masks, bool)
     if masks.ndim != 3 or Ks.shape != (len(masks), 3, 3) or c2ws.shape != (len(masks), 4, 4):
         raise BadInputError(f"visual hull: masks {masks.shape}, Ks {Ks.shape}, c2ws {c2ws.shape} disagree")
-    if len(means) == 0:
-        return 0.0
     if tolerance_px > 0:
         masks = binary_dilation(masks, structure=np.ones((1, 3, 3), bool), iterations=tolerance_px)
     _, height, width = masks.shape
@@ -110,4 +115,4 @@ def fraction_outside_visual_hull(
         v = np.floor(K[1, 1] * cam[:, 1] / zs + K[1, 2]).astype(np.int64)
         seen = (z > 1e-6) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
         outside[seen] |= ~mask[v[seen], u[seen]]
-    return float(outside.mean())
+    return outside

@@ -5,8 +5,9 @@ Per the extension: one primitive with `mode` 0 (POINTS), `POSITION`, and the att
 `KHR_gaussian_splatting:SCALE` (VEC3 float, linear, as the ratified text and PlayCanvas'
 splat-transform write it), `KHR_gaussian_splatting:OPACITY` (SCALAR float in [0, 1]) and
 `KHR_gaussian_splatting:SH_DEGREE_l_COEF_n` (VEC3 float, RGB per coefficient), plus `COLOR_0` as
-the fallback for viewers without the extension. glTF is +Y up, metres: the turntable frame
-(+Z up) is rotated explicitly on the way in and out.
+the fallback for viewers without the extension, which then draw a coloured point cloud. glTF is
++Y up, metres: the turntable frame (+Z up) is rotated on the way in and out to where PlayCanvas'
+splat-transform puts a PLY-convention splat (docs/formats.md), so splat.glb and mesh.glb overlay.
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ import numpy as np
 
 from station.errors import BadInputError
 from station.export.splat_model import TURNTABLE_TO_YUP, SplatModel, logit, quat_normalize
-from station.scanfolder import atomic_write_bytes
 
 EXT = "KHR_gaussian_splatting"
 _GLB_MAGIC = 0x46546C67  # "glTF"
@@ -31,11 +31,16 @@ _TYPE_WIDTH = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
 _SH_PER_DEGREE = {1: 3, 2: 5, 3: 7}
 
 
+def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """glTF vertex colours are linear; the splat's DC colour is display sRGB."""
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
 def _attributes(m: SplatModel) -> list[tuple[str, str, np.ndarray]]:
     q = quat_normalize(m.quats)
     attrs = [
         ("POSITION", "VEC3", m.means),
-        ("COLOR_0", "VEC4", np.concatenate([m.rgb(), m.opacity()[:, None]], axis=1)),
+        ("COLOR_0", "VEC4", np.concatenate([_srgb_to_linear(m.rgb()), m.opacity()[:, None]], axis=1)),
         (f"{EXT}:ROTATION", "VEC4", q[:, [1, 2, 3, 0]]),
         (f"{EXT}:SCALE", "VEC3", np.exp(m.scales_log.astype(np.float64))),
         (f"{EXT}:OPACITY", "SCALAR", m.opacity()[:, None]),
@@ -99,10 +104,6 @@ def encode_glb(model: SplatModel) -> bytes:
             bin_bytes,
         ]
     )
-
-
-def write_glb(path: Path, model: SplatModel) -> None:
-    atomic_write_bytes(Path(path), encode_glb(model))
 
 
 def _chunks(data: bytes, source: Path) -> tuple[dict, bytes]:
@@ -180,12 +181,3 @@ def decode_glb(data: bytes, source: Path) -> SplatModel:
     except BadInputError as exc:
         raise BadInputError(f"{source}: {exc}") from exc
     return model.rotated(TURNTABLE_TO_YUP.T)
-
-
-def read_glb(path: Path) -> SplatModel:
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise BadInputError(f"{path}: cannot read GLB ({exc.strerror})") from exc
-    return decode_glb(data, path)

@@ -293,8 +293,10 @@ def build_report_html(inputs: ReportInputs) -> str:
         f"<h2>Quality checks</h2>{_checks(inputs.gate)}"
         f"<h2>Key figures</h2>{_table([(k, m.get(k), u, d) for k, u, d in KEY_FIGURES])}{geo}"
         f"{_images(inputs.panels, m)}{_curves(inputs.train)}"
-        "<p>Files in asset/: splat.ply (INRIA), splat.splat, splat.spz, splat.glb (KHR_gaussian_splatting), "
-        "infill.ply, mesh.ply and mesh.glb (watertight, metres), metrics.json, gate.json.</p></body></html>"
+        "<p>Open <a href=\"viewer.html\">viewer.html</a> to orbit the splat and the mesh (offline). "
+        "Files in asset/: splat.ply (INRIA), splat.splat, splat.spz, splat.glb (KHR_gaussian_splatting), "
+        "infill.ply, mesh.ply and mesh.glb (watertight, metres; frames in docs/formats.md), metrics.json, "
+        "gate.json.</p></body></html>"
     )
 
 

@@ -1,88 +1,55 @@
-"""antimatter15 `.splat`: the 32-byte-per-splat format most web viewers open.
+"""The splat formats station writes and reads, in one table keyed by file suffix.
 
-Layout per splat (little-endian): 3 x f32 position, 3 x f32 linear scale, 4 x u8 RGBA with
-rgb = 0.5 + C0*f_dc and a = sigmoid(opacity), 4 x u8 quaternion q*128+128 in w,x,y,z order,
-normalised. No header and no view-dependent colour. Viewers expect the splats sorted by
-importance (size times opacity, largest first) so a partial download already looks right.
-The file is written in the y-down frame COLMAP-trained scenes use, so the stone stands upright
-in viewers; the reader rotates back to the turntable frame.
+Each codec module turns a turntable-frame SplatModel into bytes in its format's own frame and back
+(docs/formats.md); this table is the one place that reads and writes files, so every format gets the
+same typed error on an unreadable file and the same atomic write.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
+from typing import Callable
 
 from station.errors import BadInputError
-from station.export.splat_model import (
-    SH_C0,
-    TURNTABLE_TO_YDOWN,
-    SplatModel,
-    logit,
-    quat_normalize,
-)
+from station.export import dotsplat, gltf, ply, spz
+from station.export.splat_model import SplatModel
 from station.scanfolder import atomic_write_bytes
 
-SPLAT_DTYPE = np.dtype(
-    [("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)]
-)
+
+@dataclass(frozen=True)
+class SplatFormat:
+    name: str
+    encode: Callable[[SplatModel], bytes]
+    decode: Callable[[bytes, Path], SplatModel]
 
 
-def splat_order(model: SplatModel) -> np.ndarray:
-    """Importance order viewers expect: volume (exp of summed log scales) x opacity, descending."""
-    importance = np.exp(model.scales_log.astype(np.float64).sum(axis=1)) * model.opacity()
-    return np.argsort(-importance, kind="stable")
+FORMATS = {
+    ".ply": SplatFormat("INRIA 3DGS PLY", ply.encode_ply, ply.decode_ply),
+    ".splat": SplatFormat("antimatter15 .splat", dotsplat.encode_splat, dotsplat.decode_splat),
+    ".spz": SplatFormat("Niantic SPZ v3", spz.encode_spz, spz.decode_spz),
+    ".glb": SplatFormat("glTF 2.0 binary, KHR_gaussian_splatting", gltf.encode_glb, gltf.decode_glb),
+}
 
 
-def encode_splat(model: SplatModel) -> bytes:
-    """Sorted, y-down `.splat` bytes of a turntable-frame model."""
-    m = model.rotated(TURNTABLE_TO_YDOWN).subset(splat_order(model))
-    records = np.zeros(m.num, dtype=SPLAT_DTYPE)
-    records["position"] = m.means
-    records["scale"] = np.exp(m.scales_log)
-    rgb = np.clip(np.round(m.rgb() * 255.0), 0, 255)
-    alpha = np.clip(np.round(m.opacity() * 255.0), 0, 255)
-    records["rgba"] = np.concatenate([rgb, alpha[:, None]], axis=1).astype(np.uint8)
-    q = quat_normalize(m.quats)
-    records["rot"] = np.clip(np.round(q * 128.0 + 128.0), 0, 255).astype(np.uint8)
-    return records.tobytes()
-
-
-def write_splat(path: Path, model: SplatModel) -> None:
-    atomic_write_bytes(Path(path), encode_splat(model))
-
-
-def decode_splat(data: bytes, source: Path) -> SplatModel:
-    """Turntable-frame model of `.splat` bytes (SH degree 0: the format stores no more)."""
-    if len(data) == 0 or len(data) % SPLAT_DTYPE.itemsize:
-        raise BadInputError(
-            f"{source}: {len(data)} bytes is not a whole number of 32-byte .splat records (truncated or not a .splat)"
-        )
-    records = np.frombuffer(data, dtype=SPLAT_DTYPE)
-    finite = np.all(np.isfinite(records["position"])) and np.all(np.isfinite(records["scale"]))
-    if not finite or np.any(records["scale"] <= 0):
-        raise BadInputError(f"{source}: .splat holds non-finite positions or non-positive scales (garbage data)")
-    scale = records["scale"].astype(np.float64)
-    rgba = records["rgba"].astype(np.float64) / 255.0
-    q = (records["rot"].astype(np.float64) - 128.0) / 128.0
-    if np.any(np.linalg.norm(q, axis=1) < 0.5):
-        raise BadInputError(f"{source}: .splat holds quaternions far from unit length (garbage data)")
-    model = SplatModel(
-        means=records["position"],
-        scales_log=np.log(scale),
-        quats=quat_normalize(q),
-        opacity_logit=logit(rgba[:, 3], eps=0.5 / 255.0),
-        sh_dc=(rgba[:, :3] - 0.5) / SH_C0,
-        sh_rest=np.zeros((len(records), 0, 3), np.float32),
-    )
-    return model.rotated(TURNTABLE_TO_YDOWN.T)
+def format_of(path: Path) -> SplatFormat:
+    try:
+        return FORMATS[Path(path).suffix.lower()]
+    except KeyError:
+        raise BadInputError(f"{path}: unknown splat format (one of {', '.join(FORMATS)})") from None
 
 
 def read_splat(path: Path) -> SplatModel:
+    """Turntable-frame model of a splat file; BadInputError naming the file on anything malformed."""
     path = Path(path)
+    fmt = format_of(path)
     try:
         data = path.read_bytes()
     except OSError as exc:
-        raise BadInputError(f"{path}: cannot read .splat ({exc.strerror})") from exc
-    return decode_splat(data, path)
+        raise BadInputError(f"{path}: cannot read {fmt.name} ({exc.strerror})") from exc
+    return fmt.decode(data, path)
+
+
+def write_splat(path: Path, model: SplatModel) -> None:
+    """Write a turntable-frame model in the format its suffix names, atomically."""
+    atomic_write_bytes(Path(path), format_of(path).encode(model))

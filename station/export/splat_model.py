@@ -1,9 +1,9 @@
 """The in-memory splat every writer and reader in this package exchanges.
 
 Values are kept in the training parametrisation (log scales, logit opacity, SH coefficients),
-exactly as INRIA PLY stores them, so a PLY round trip is lossless. Formats that use another
-axis convention (SPZ and glTF are +Y up) rotate a copy with `SplatModel.rotated`, which also
-rotates the view-dependent SH bands so colours seen from a given direction are unchanged.
+exactly as INRIA PLY stores them, so a PLY round trip is lossless up to the frame's rotation. Each
+format is written in its own axis convention (below) by rotating a copy with `SplatModel.rotated`,
+which also rotates the view-dependent SH bands so colours seen from a given direction are unchanged.
 """
 
 from __future__ import annotations
@@ -15,10 +15,12 @@ import numpy as np
 from station.errors import BadInputError
 from station.ngs.conventions import SH_C0
 
-# Turntable frame (+z up) to a +Y-up right-handed frame (SPZ's RUB, glTF): rotate -90 deg about x.
-TURNTABLE_TO_YUP = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], dtype=np.float64)
-# Turntable frame to the y-down frame COLMAP-trained .splat viewers assume: +90 deg about x.
+# Each format's own frame, from the turntable frame (metres, origin the turntable centre on the
+# plate, +z up); docs/formats.md has the table. All are proper rotations about the origin.
+# INRIA PLY, antimatter15 .splat and SPZ: the y-down (COLMAP/OpenCV) frame 3DGS viewers assume.
 TURNTABLE_TO_YDOWN = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], dtype=np.float64)
+# glTF (+Y up): the PLY frame turned 180 degrees about z, as PlayCanvas' splat-transform maps it.
+TURNTABLE_TO_YUP = np.diag([-1.0, -1.0, 1.0]) @ TURNTABLE_TO_YDOWN
 
 _SH_REST_COUNTS = {0: 0, 1: 3, 2: 8, 3: 15}
 

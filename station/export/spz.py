@@ -8,7 +8,9 @@ sigmoid(opacity)*255), colours (u8 of dc*0.15*255 + 0.5*255), scales (u8 of (log
 rotations (v3: 4 bytes "smallest three": 2-bit index of the largest xyzw component, then three
 10-bit fields of sign bit + 9-bit |q_i|/sqrt(1/2)), SH (u8 per coefficient, RGB interleaved per
 coefficient, q = round(x*128)+128 rounded to 8-bucket (degree 1) or 16-bucket (higher) centres).
-SPZ's internal frame is RUB (+Y up), so the turntable frame is rotated on the way in and out.
+The file carries no frame: we write the y-down PLY convention, as PlayCanvas' splat-transform and
+Spark read and write SPZ (without the RUB flip of Niantic's library), so an SPZ lands where our
+splat.ply does in those viewers (docs/formats.md).
 """
 
 from __future__ import annotations
@@ -22,14 +24,13 @@ import numpy as np
 
 from station.errors import BadInputError
 from station.export.splat_model import (
-    TURNTABLE_TO_YUP,
+    TURNTABLE_TO_YDOWN,
     SplatModel,
     logit,
     quat_normalize,
     sh_rest_count,
     sigmoid,
 )
-from station.scanfolder import atomic_write_bytes
 
 SPZ_MAGIC = 0x5053474E
 SPZ_VERSION = 3
@@ -105,7 +106,7 @@ def _quantize_sh(x: np.ndarray, bucket: int) -> np.ndarray:
 
 def encode_spz(model: SplatModel) -> bytes:
     """gzip'd SPZ v3 bytes of a turntable-frame model."""
-    m = model.rotated(TURNTABLE_TO_YUP)
+    m = model.rotated(TURNTABLE_TO_YDOWN)
     n, k = m.num, m.sh_rest.shape[1]
     header = _HEADER.pack(SPZ_MAGIC, SPZ_VERSION, n, m.sh_degree, FRACTIONAL_BITS, 0, 0)
     sh = np.zeros((n, k, 3), np.uint8)
@@ -121,10 +122,6 @@ def encode_spz(model: SplatModel) -> bytes:
         sh,
     ]
     return gzip.compress(header + b"".join(b.tobytes() for b in blocks), compresslevel=6, mtime=0)
-
-
-def write_spz(path: Path, model: SplatModel) -> None:
-    atomic_write_bytes(Path(path), encode_spz(model))
 
 
 def decode_spz(data: bytes, source: Path) -> SplatModel:
@@ -164,13 +161,4 @@ def decode_spz(data: bytes, source: Path) -> SplatModel:
         sh_dc=(color.reshape(n, 3).astype(np.float64) / 255.0 - 0.5) / COLOR_SCALE,
         sh_rest=(sh.reshape(n, k, 3).astype(np.float64) - 128.0) / 128.0,
     )
-    return model.rotated(TURNTABLE_TO_YUP.T)
-
-
-def read_spz(path: Path) -> SplatModel:
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise BadInputError(f"{path}: cannot read SPZ ({exc.strerror})") from exc
-    return decode_spz(data, path)
+    return model.rotated(TURNTABLE_TO_YDOWN.T)

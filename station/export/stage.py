@@ -18,7 +18,6 @@ import trimesh
 from station.errors import BadInputError
 from station.export.gate import GateConfig, GateResult, evaluate_gate, write_gate
 from station.export.geometry_metrics import compare_meshes, fraction_outside_visual_hull
-from station.export.gltf import write_glb
 from station.export.infill_occupancy import body_volume, infill_body
 from station.export.mesh import (
     MeshConfig,
@@ -30,11 +29,11 @@ from station.export.mesh import (
     vertex_colors_from_splats,
     write_mesh_files,
 )
-from station.export.ply import write_ply
 from station.export.report import ReportInputs, render_panels, write_report
 from station.export.splat_formats import write_splat
 from station.export.splat_model import SplatModel, logit
-from station.export.spz import write_spz
+from station.export.trim import shipped_splat
+from station.export.viewer_page import write_viewer
 from station.ngs.dataset import SceneData, View, load_scene
 from station.ngs.gaussians import Gaussians, rgb_to_sh
 from station.ngs.infill import Camera, Infill
@@ -204,12 +203,6 @@ def export_scan(scan_root: Path, config: ExportConfig | None = None) -> ExportRe
     asset = scan.asset_dir
     files = {name: asset / name for name in ("splat.ply", "infill.ply", "splat.splat", "splat.spz", "splat.glb",
                                                "mesh.ply", "mesh.glb", "metrics.json", "gate.json", "report.html")}
-    write_ply(files["splat.ply"], model, comment="station surface splat, metres, turntable frame (+z up)")
-    write_ply(files["infill.ply"], infill_splat(infill), comment="station NGS infill, opaque grey, metres, turntable frame")
-    write_splat(files["splat.splat"], model)
-    write_spz(files["splat.spz"], model)
-    write_glb(files["splat.glb"], model)
-
     metrics = evaluate(surface, infill, scene.test)
     metrics["infill_source"] = infill_source
     metrics["train_seconds"] = train.get("report", {}).get("seconds")
@@ -219,6 +212,13 @@ def export_scan(scan_root: Path, config: ExportConfig | None = None) -> ExportRe
         files["mesh.stl"] = asset / "mesh.stl"
     mesh = _write_mesh(model, scene, body, body_grid, config, files, metrics)
     metrics["outside_hull_fraction"] = _hull_fraction(model, scene, config)
+    # The shipped splats are trimmed of strays (station.export.trim); viewer.html shows them with the mesh.
+    shipped, metrics["shipped_splat"] = shipped_splat(model, surface, infill, scene, metrics, config.hull_tolerance)
+    for name in ("splat.ply", "splat.splat", "splat.spz", "splat.glb"):
+        write_splat(files[name], shipped)
+    write_splat(files["infill.ply"], infill_splat(infill))
+    metrics["viewer"] = write_viewer(asset / "viewer.html", scan.root.name, files["splat.spz"], files.get("mesh.glb"),
+                                     shipped.means.min(axis=0), shipped.means.max(axis=0))
     if config.reference_mesh is not None and mesh is not None:
         if not Path(config.reference_mesh).is_file():
             raise BadInputError(f"{config.reference_mesh}: reference mesh not found")
