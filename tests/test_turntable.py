@@ -7,6 +7,7 @@ emulated stage physically is) or in a typed error naming the fault.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -23,6 +24,7 @@ from station.turntable.errors import (
     GrblSettingsError,
     MoveCancelledError,
     NotGrblError,
+    SoftLimitError,
     TiltLimitError,
     UnexpectedResetError,
     WaitTimeoutError,
@@ -70,7 +72,32 @@ def test_shortest_rotation_goes_backwards_and_continuous_always_forwards():
         table.move_to(350.0, 0.0).wait(5.0)
         assert table.position()[0] == pytest.approx(-10.0, abs=HALF_STEP)  # -10 is shorter than +350
         assert table.move_to(10.0, 0.0, rotation="continuous").wait(5.0)[0] == pytest.approx(10.0, abs=HALF_STEP)
-        assert table.move_to(5.0, 0.0, rotation="continuous").wait(5.0)[0] == pytest.approx(365.0, abs=HALF_STEP)
+        assert table.move_to(5.0, 0.0, rotation="continuous").wait(5.0)[0] == pytest.approx(5.0 + 360.0 - 360.0, abs=HALF_STEP)
+
+
+def test_x_stays_inside_its_window_however_many_turns_a_scan_makes():
+    with start_fake_turntable(time_scale=0.005) as fake:
+        with Turntable.connect(fake.port, replace(FAST, x_range_deg=(-180.0, 540.0))) as table:
+            seen = []
+            for _ring in range(3):
+                for angle in (0.0, 120.0, 240.0):
+                    seen.append(table.move_to(angle, 0.0, rotation="continuous").wait(10.0)[0])
+            assert max(seen) <= 540.0 and min(seen) >= -180.0
+            assert seen[:6] == pytest.approx([0.0, 120.0, 240.0, 360.0, 480.0, 240.0], abs=HALF_STEP)  # one unwind
+            assert angle_error(fake.firmware.position()[0], 240.0) < HALF_STEP
+
+
+def test_soft_limits_are_checked_before_anything_is_sent():
+    with rig(homing=True, soft_limits=True, settings={130: 300.0}) as (_, table):
+        with pytest.raises(SoftLimitError, match="narrower than one turn"):
+            table.move_to(90.0, 0.0)
+    with rig(homing=True, soft_limits=True, settings={130: 720.0}) as (fake, table):
+        assert table.settings()[20] == 1
+        with pytest.raises(SoftLimitError, match=r"\$131=200"):
+            table.move_to(0.0, 30.0)  # tilt travel is [-200, 0] machine, and work = machine here
+        assert table.move_to(-90.0, 0.0).wait(5.0)[0] == pytest.approx(-90.0, abs=HALF_STEP)
+        assert table.move_to(90.0, 0.0).wait(5.0)[0] == pytest.approx(-270.0, abs=HALF_STEP)  # wrapped into travel
+        assert fake.firmware.state == "Idle"
 
 
 def test_grblhal_board_is_identified_and_driven():
