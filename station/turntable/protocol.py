@@ -157,44 +157,59 @@ class GrblProtocol:
         """Soft-reset (0x18) until a banner comes, then sync with an empty line.
 
         A board that has just powered up ignores input for about a second and prints its own banner
-        late, so the reset is repeated every `retry_s`; the sync line's `ok` comes after every banner,
-        `ALARM:3` and `>startup line:ok` echo the resets caused, so all of them are read here.
+        late, so the reset is repeated every `retry_s`. Each queued reset flushes GRBL's receive
+        buffer, so the sync line goes out only once banners have stopped for a while, and again if
+        another banner follows it; its `ok` then comes after every banner, `ALARM:3` and
+        `>startup line:ok` echo the resets caused.
         """
         self.line.discard_input()
         self.line.heard.clear()
         deadline = time.monotonic() + timeout_s
         banner: re.Match[str] | None = None
         alarms: list[int] = []
+        startup: list[str] = []
+
+        def note(text: str) -> bool:
+            """Record one line; True if it was a banner."""
+            nonlocal banner
+            text = text.strip()
+            code = _CODE.match(text)
+            if code and code.group(1) == "ALARM":
+                alarms.append(int(code.group(2)))  # a reset mid-move: ALARM:3 comes before the banner
+            elif text.startswith(">"):
+                startup.append(text[1:])  # `>G20:ok`: a $N startup line the firmware ran after the reset
+            elif (match := BANNER.match(text)) is not None:
+                banner = match
+                startup.clear()
+                return True
+            return False
+
         while banner is None:
             self.line.write(b"\x18")
             retry = min(deadline, time.monotonic() + retry_s)
             while banner is None and (text := self.line.read_line(retry)) is not None:
-                banner = BANNER.match(text.strip())
-                code = _CODE.match(text.strip())
-                if code and code.group(1) == "ALARM":
-                    alarms.append(int(code.group(2)))  # a reset mid-move: ALARM:3 comes before the banner
+                note(text)
             if banner is None and time.monotonic() >= deadline:
                 heard = bytes(self.line.heard).decode("ascii", errors="replace").strip()
                 if heard:
                     raise NotGrblError(self.port, heard[:80])
                 raise DeviceTimeoutError(f"no answer from {self.port} within {timeout_s:g} s of a reset; "
                                          "is a GRBL turntable connected and powered?")
-        self.line.write(b"\n")
-        startup: list[str] = []
-        while True:
-            text = self.line.read_line(max(deadline, time.monotonic() + 1.0))
-            if text is None:
-                raise DeviceTimeoutError(f"turntable on {self.port} sent its banner but did not answer an empty line")
-            text = text.strip()
-            code = _CODE.match(text)
-            if text == "ok":
-                return Handshake(banner.group(1), banner.group(2), tuple(alarms), tuple(startup))
-            if code and code.group(1) == "ALARM":
-                alarms.append(int(code.group(2)))
-            elif code:
-                raise GrblError(int(code.group(2)), "(empty line)", self.port)
-            elif text.startswith(">"):
-                startup.append(text[1:])  # `>G20:ok`: a $N startup line the firmware ran after the reset
+        quiet_s = retry_s / 2.0
+        sync_deadline = max(deadline, time.monotonic() + 2.0 * retry_s)
+        while time.monotonic() < sync_deadline:
+            while (text := self.line.read_line(time.monotonic() + quiet_s)) is not None:
+                note(text)  # later banners, their echoes, a stray `ok` of an earlier sync: all before ours
+            self.line.write(b"\n")
+            while (text := self.line.read_line(sync_deadline)) is not None:
+                code = _CODE.match(text.strip())
+                if text.strip() == "ok":
+                    return Handshake(banner.group(1), banner.group(2), tuple(alarms), tuple(startup))
+                if code and code.group(1) == "error":
+                    raise GrblError(int(code.group(2)), "(empty line)", self.port)
+                if note(text):
+                    break  # one more reset came after the sync line and may have flushed it
+        raise DeviceTimeoutError(f"turntable on {self.port} sent its banner but did not answer an empty line")
 
     def identify(self, flavour: str, version: str, timeout_s: float) -> FirmwareInfo:
         """`$I` build info, `$$` settings and `$N` startup lines (all refused with error:8 while moving)."""
