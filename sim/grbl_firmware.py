@@ -51,6 +51,7 @@ class Faults:
     alarm_on_move: int | None = None  # a hard limit (ALARM:1) trips halfway through that move
     vanish_on_move: int | None = None  # the USB link drops halfway through that move
     replug_after_s: float | None = 0.2  # wall seconds until a vanished link returns (None: never)
+    ignore_resets: int = 0  # the next N ctrl-x bytes are lost, as while a board is still booting
 
 
 class GrblFirmware:
@@ -92,7 +93,9 @@ class GrblFirmware:
             if not self.plugged:
                 return
             for byte in data:
-                if byte == 0x18:
+                if byte == 0x18 and self.faults.ignore_resets > 0:
+                    self.faults.ignore_resets -= 1
+                elif byte == 0x18:
                     self._soft_reset(now)
                 elif self._critical:
                     continue  # rig.md: everything is ignored until 0x18

@@ -32,7 +32,7 @@ from station.turntable.protocol import GrblProtocol
 
 SHARED_GRBL_SIM = Path(__file__).resolve().parents[1].parent / "shared" / "tools" / "grbl-sim"
 # The rig's steps per degree with rates fast enough to keep a scan short on a busy machine.
-FAST_SETTINGS = {110: 14400.0, 111: 7200.0, 120: 1440.0, 121: 720.0}
+FAST_SETTINGS = {110: 36000.0, 111: 36000.0, 120: 3600.0, 121: 3600.0}  # 26.7 kHz steps: GRBL allows 30
 
 
 def build_grbl_sim(out: Path) -> Path | None:
@@ -107,9 +107,10 @@ def send_lines(port: str, lines: list[str]) -> None:
         proto.line.close()
 
 
-def fast_config() -> TurntableConfig:
+def fast_config(feed_deg_min: float = 36000.0) -> TurntableConfig:
+    """The driver's view of FAST_SETTINGS; a lower feed leaves time to act on a running move."""
     return TurntableConfig(max_rate_deg_min=(FAST_SETTINGS[110], FAST_SETTINGS[111]),
-                           accel_deg_s2=(FAST_SETTINGS[120], FAST_SETTINGS[121]), feed_deg_min=7200.0,
+                           accel_deg_s2=(FAST_SETTINGS[120], FAST_SETTINGS[121]), feed_deg_min=feed_deg_min,
                            reply_timeout_s=3.0, banner_timeout_s=5.0, reconnect_timeout_s=20.0)
 
 
@@ -140,7 +141,7 @@ class _NoOperator:
         """Nobody places a stone on firmware alone."""
 
 
-PLAN = ScanPlan(elevations_deg=(20.0, 45.0), azimuths=5)  # 2 plates + 10 shots
+PLAN = ScanPlan(elevations_deg=(20.0, 45.0), azimuths=4)  # 2 plates + 8 shots
 
 
 def scan(port: str, out: Path) -> None:

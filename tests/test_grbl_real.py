@@ -98,7 +98,7 @@ def test_a_small_scan_on_real_firmware_shoots_every_frame_where_the_firmware_sta
 def test_sigkill_mid_scan_then_resume_holds_the_moving_table_before_its_reset(firmware, tmp_path):
     out = tmp_path / "scan"
     proc = scan_process(firmware.port, out)
-    wait_frames(proc, out, 4)
+    wait_frames(proc, out, 3)
     proc.send_signal(signal.SIGKILL)  # most likely mid-move: GRBL keeps running the line it took
     proc.wait(10)
     again = scan_process(firmware.port, out)
@@ -110,9 +110,9 @@ def test_sigkill_mid_scan_then_resume_holds_the_moving_table_before_its_reset(fi
 def test_firmware_restart_mid_scan_then_station_restart_keeps_the_reference(firmware, tmp_path):
     out = tmp_path / "scan"
     proc = scan_process(firmware.port, out)
-    wait_frames(proc, out, 4)
+    wait_frames(proc, out, 3)
     firmware.restart_firmware()  # MPos restarts at zero: the driver re-references with G10 L20 P1
-    wait_frames(proc, out, 7)
+    wait_frames(proc, out, 6)
     proc.send_signal(signal.SIGKILL)
     proc.wait(10)
     again = scan_process(firmware.port, out)  # connect soft-resets: a G92 reference would be gone now
@@ -122,7 +122,7 @@ def test_firmware_restart_mid_scan_then_station_restart_keeps_the_reference(firm
 
 
 def test_feed_hold_waits_on_real_firmware_and_cancel_resets_only_from_hold_0(firmware):
-    with Turntable.connect(firmware.port, fast_config()) as table:
+    with Turntable.connect(firmware.port, fast_config(feed_deg_min=1800.0)) as table:
         moving = table.move_to(170.0, 40.0)
         time.sleep(0.3)
         table.feed_hold()

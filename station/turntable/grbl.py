@@ -18,7 +18,7 @@ from typing import Literal, TypeVar
 
 from station.errors import BadInputError, DeviceDisconnectedError, DeviceError, DeviceTimeoutError
 from station.turntable.action import MoveStatus
-from station.turntable.errors import GrblSettingsError, MoveCancelledError, TiltLimitError, UnexpectedResetError
+from station.turntable.errors import GrblAlarm, GrblSettingsError, MoveCancelledError, TiltLimitError, UnexpectedResetError
 from station.turntable.link import SerialLine
 from station.turntable.planning import Rotation, check_travel, move_seconds, wrapped_target, x_window
 from station.turntable.protocol import FirmwareInfo, GrblProtocol
@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 _AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2, "A": 3}
 CounterLoss = Literal["none", "at_rest", "mid_move"]
+SUDDEN_HALT_ALARMS = (1, 3)  # hard limit, reset while moving: GRBL says the position is likely lost
 MODAL_LINE = "G21 G90 G94 G17 G54"  # mm (here: degrees), absolute, units/min: whatever $N lines set
 
 
@@ -130,8 +131,8 @@ class Turntable:
         proto, cfg = self._p, self.config
         self._stop_motion(proto.probe(min(0.5, cfg.reply_timeout_s)))
         shake = proto.handshake(cfg.banner_timeout_s, cfg.banner_retry_s)
-        if 3 in shake.alarms:
-            self._mark_inexact("the reset caught the table moving (ALARM:3)")
+        if set(shake.alarms) & set(SUDDEN_HALT_ALARMS):
+            self._mark_inexact(f"the reset reported {', '.join(f'ALARM:{a}' for a in shake.alarms)}")
         self.info = proto.identify(shake.flavour, shake.version, cfg.reply_timeout_s)
         self._check_settings(self.info.settings)
         self._check_startup(shake.startup)
@@ -306,6 +307,10 @@ class Turntable:
             raise
         except UnexpectedResetError:
             self._lose_counter()
+            raise
+        except GrblAlarm as alarm:
+            if alarm.code in SUDDEN_HALT_ALARMS:
+                self._mark_inexact(f"ALARM:{alarm.code} stopped it dead mid-move")
             raise
 
     def _lose_counter(self) -> None:

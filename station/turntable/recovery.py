@@ -13,7 +13,8 @@ Policy, in order:
    - Homing disabled: unlock ($X) if in Alarm, then
      * the board kept its step counter (alarm, timeout or soft reset on a live port, checked by
        MPos lying where the driver last saw it or on the interrupted move's path): the work position
-       is MPos - G54, exact unless a reset caught the table moving (ALARM:3);
+       is MPos - G54, exact unless a sudden halt (ALARM:1 hard limit, ALARM:3 reset while moving)
+       may have lost steps;
      * the counter was lost (the board rebooted, or the USB link dropped, which power-cycles or
        DTR-resets a typical board): G10 L20 P1 declares the last position seen. It is exact when no
        move was running; otherwise the table stopped somewhere the driver never saw, `exact` is
@@ -66,8 +67,8 @@ class TurntableRecovery:
             if loss == "none":
                 position, exact = table.resync(), table.position_exact
                 if not exact:
-                    log.warning("turntable on %s: position %s is not exact (a reset caught it moving)",
-                                table.port, position)
+                    log.warning("turntable on %s: position %s is not exact (a sudden halt: reset or hard "
+                                "limit while moving); enable homing ($22=1) to re-reference", table.port, position)
             else:
                 exact = loss == "at_rest"
                 position = table.reference_to(last_seen, exact=exact)
