@@ -4,7 +4,7 @@
 grbl-sim is GPL and only ever talked to over its serial stream) with fault controls; running this
 file as a script is a `station` scan process the tests can SIGKILL:
 
-    python tests/grbl_sim_support.py scan PORT OUT
+    python tests/grbl_sim_support.py scan PORT OUT [FEED_DEG_MIN]
 
 Its camera stores, as each frame's bytes, the work position the firmware itself reported at the
 exposure (`?` through the real driver), so a test can compare every manifest pose with it.
@@ -144,9 +144,9 @@ class _NoOperator:
 PLAN = ScanPlan(elevations_deg=(20.0, 45.0), azimuths=4)  # 2 plates + 8 shots
 
 
-def scan(port: str, out: Path) -> None:
+def scan(port: str, out: Path, feed_deg_min: float = 36000.0) -> None:
     """One `station` scan process: connect, run (or resume) PLAN into `out`."""
-    with Turntable.connect(port, fast_config()) as table:
+    with Turntable.connect(port, fast_config(feed_deg_min)) as table:
         session = ScanSession(ScanFolder(out), PLAN, RigGeometry().scaled(32, 24), table, FirmwarePositionCamera(table),
                               _NoOperator(), "real-firmware", SessionConfig(bytes_per_frame_hint=1024, device_retries=3))
         session.run()
@@ -155,4 +155,4 @@ def scan(port: str, out: Path) -> None:
 if __name__ == "__main__":
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if sys.argv[1] == "scan":
-        scan(sys.argv[2], Path(sys.argv[3]))
+        scan(sys.argv[2], Path(sys.argv[3]), *(float(v) for v in sys.argv[4:5]))

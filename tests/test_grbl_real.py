@@ -55,9 +55,9 @@ def angle_error(a: float, b: float) -> float:
     return abs((a - b + 180.0) % 360.0 - 180.0)
 
 
-def scan_process(port: str, out: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, str(SUPPORT), "scan", port, str(out)], env=dict(os.environ),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+def scan_process(port: str, out: Path, feed_deg_min: float = 36000.0) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, str(SUPPORT), "scan", port, str(out), str(feed_deg_min)],
+                            env=dict(os.environ), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 
 def listed(out: Path) -> int:
@@ -95,16 +95,23 @@ def test_a_small_scan_on_real_firmware_shoots_every_frame_where_the_firmware_sta
     assert "G21 G90 G94" in firmware.traffic() and "G92 " not in firmware.traffic()
 
 
-def test_sigkill_mid_scan_then_resume_holds_the_moving_table_before_its_reset(firmware, tmp_path):
+def test_sigkill_mid_move_then_resume_holds_the_moving_table_before_its_reset(firmware, tmp_path):
     out = tmp_path / "scan"
-    proc = scan_process(firmware.port, out)
+    proc = scan_process(firmware.port, out, feed_deg_min=3600.0)  # 90 degrees take over 1.5 s
     wait_frames(proc, out, 3)
-    proc.send_signal(signal.SIGKILL)  # most likely mid-move: GRBL keeps running the line it took
+    moves = firmware.traffic().count("G90 G1")
+    while firmware.traffic().count("G90 G1") == moves:
+        assert proc.poll() is None
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)  # the line went out: GRBL keeps running the move it took
     proc.wait(10)
+    killed_at = len(firmware.traffic())
     again = scan_process(firmware.port, out)
     assert again.wait(240) == 0, again.stderr.read().decode()[-2000:]
     assert_shot_where_the_firmware_stood(out)
-    assert "ALARM:3" not in firmware.traffic()
+    after = firmware.traffic()[killed_at:]
+    assert "ALARM:3" not in firmware.traffic()  # the reset never caught it moving...
+    assert "<Run|" in after and "H>F b'!'" in after  # ...because it was found moving and held first
 
 
 def test_firmware_restart_mid_scan_then_station_restart_keeps_the_reference(firmware, tmp_path):
