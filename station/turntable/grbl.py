@@ -13,17 +13,19 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Literal, TypeVar
 
-from station.errors import BadInputError, DeviceDisconnectedError, DeviceError, DeviceTimeoutError
+from station.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError
 from station.turntable.action import MoveStatus
-from station.turntable.errors import GrblAlarm, GrblSettingsError, MoveCancelledError, TiltLimitError, UnexpectedResetError
+from station.turntable.config import TurntableConfig
+from station.turntable.errors import GrblAlarm, MoveCancelledError, TiltLimitError, UnexpectedResetError
 from station.turntable.link import SerialLine
 from station.turntable.planning import Rotation, check_travel, move_seconds, wrapped_target, x_window
 from station.turntable.protocol import FirmwareInfo, GrblProtocol
 from station.turntable.recovery import Recovery, TurntableRecovery
 from station.turntable.reference import Reference, read_reference
+from station.turntable.reset import check_settings, check_startup_echoes, hold_until_still, set_modal_state
 from station.turntable.status import MachineStatus
 
 log = logging.getLogger(__name__)
@@ -31,40 +33,6 @@ T = TypeVar("T")
 _AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2, "A": 3}
 CounterLoss = Literal["none", "at_rest", "mid_move"]
 SUDDEN_HALT_ALARMS = (1, 3)  # hard limit, reset while moving: GRBL says the position is likely lost
-MODAL_LINE = "G21 G90 G94 G17 G54"  # mm (here: degrees), absolute, units/min: whatever $N lines set
-
-
-@dataclass
-class TurntableConfig:
-    """What the rig expects of its board, and how long to wait for it."""
-
-    steps_per_deg: tuple[float, float] = (44.444, 44.444)  # $100, $101: a wrong value mis-scales every angle
-    max_rate_deg_min: tuple[float, float] = (3600.0, 1800.0)  # $110, $111
-    accel_deg_s2: tuple[float, float] = (180.0, 90.0)  # $120, $121
-    settings_rel_tol: float = 1e-3
-    feed_deg_min: float = 1800.0
-    tilt_limits_deg: tuple[float, float] = (0.0, 90.0)
-    tilt_axis: Literal["Y", "A"] = "Y"
-    rotation: Rotation = "shortest"
-    x_range_deg: tuple[float, float] = (-360.0, 360.0)  # work X stays here: targets wrap by whole turns
-    baudrate: int = 115200
-    banner_timeout_s: float = 3.0
-    banner_retry_s: float = 1.0  # a board just powered up ignores the first reset: send another
-    reply_timeout_s: float = 2.0
-    poll_hz: float = 4.0  # status fallback while waiting for motion; GRBL advises 5 Hz at most
-    motion_margin_s: float = 2.0
-    home_timeout_s: float = 120.0
-    reconnect_timeout_s: float = 10.0
-
-    def __post_init__(self) -> None:
-        if not 0 < self.poll_hz <= 5:
-            raise BadInputError(f"TurntableConfig.poll_hz={self.poll_hz} must be in (0, 5]")
-        if self.feed_deg_min <= 0:
-            raise BadInputError(f"TurntableConfig.feed_deg_min={self.feed_deg_min} must be positive")
-        if self.tilt_axis not in ("Y", "A"):
-            raise BadInputError(f"TurntableConfig.tilt_axis={self.tilt_axis!r} must be 'Y' or 'A'")
-        if not self.x_range_deg[1] - self.x_range_deg[0] >= 360.0:
-            raise BadInputError(f"TurntableConfig.x_range_deg={self.x_range_deg} must span at least one turn")
 
 
 class Turntable:
@@ -129,15 +97,15 @@ class Turntable:
 
     def _establish(self) -> None:
         proto, cfg = self._p, self.config
-        self._stop_motion(proto.probe(min(0.5, cfg.reply_timeout_s)))
+        hold_until_still(proto, proto.probe(min(0.5, cfg.reply_timeout_s)), cfg)
         shake = proto.handshake(cfg.banner_timeout_s, cfg.banner_retry_s)
         if set(shake.alarms) & set(SUDDEN_HALT_ALARMS):
             self._mark_inexact(f"the reset reported {', '.join(f'ALARM:{a}' for a in shake.alarms)}")
         self.info = proto.identify(shake.flavour, shake.version, cfg.reply_timeout_s)
-        self._check_settings(self.info.settings)
-        self._check_startup(shake.startup)
+        check_settings(self.info.settings, cfg, self._axis, self.port)
+        check_startup_echoes(shake.startup, self.port)
         if proto.query_status(cfg.reply_timeout_s).state != "Alarm":  # G-code is locked in Alarm: after $X/$H
-            self._set_modal()
+            set_modal_state(self._p, self.config.reply_timeout_s)
         self._check_counter(self._read_reference())
 
     def _read_reference(self) -> MachineStatus:
@@ -147,38 +115,6 @@ class Turntable:
         status = self._p.query_status(self.config.reply_timeout_s)
         self._reference.check(status, self.port)
         return status
-
-    def _stop_motion(self, status: MachineStatus | None) -> None:
-        """Never reset a moving table (ALARM:3, position lost): feed hold and wait for Hold:0 first."""
-        if status is None or status.state not in ("Run", "Jog", "Hold"):
-            return
-        log.warning("turntable on %s was %s at connect; holding it before the reset", self.port, status.state)
-        self._p.line.write(b"!")
-        period = 1.0 / self.config.poll_hz
-        deadline = time.monotonic() + self.config.reply_timeout_s + self.config.motion_margin_s
-        while not (status.state == "Hold" and status.substate == 0) and status.state != "Idle":
-            if time.monotonic() > deadline:
-                raise DeviceTimeoutError(f"turntable on {self.port} did not come to rest (Hold:0) for a safe reset")
-            time.sleep(period)
-            status = self._p.query_status(self.config.reply_timeout_s)
-
-    def _check_startup(self, echoed: tuple[str, ...]) -> None:
-        """`$N` lines run after every reset (`>G20:ok`); a failed one is refused, any other is overridden."""
-        for line in echoed:
-            if not line.endswith(":ok"):
-                raise DeviceError(f"turntable on {self.port}: its stored startup line failed ({line!r}); "
-                                  f"clear it with $N0= / $N1=")
-            log.warning("turntable on %s ran its startup line %r after the reset; its modal state is overridden",
-                        self.port, line)
-
-    def _set_modal(self) -> None:
-        """Explicit units, distance and feed mode after every reset: a `$N0=G20` would make degrees inches."""
-        self._p.command(MODAL_LINE, self.config.reply_timeout_s)
-        self._p.command("G92.1", self.config.reply_timeout_s)  # a startup line may have set a G92 offset
-        modes = self._p.command("$G", self.config.reply_timeout_s)
-        words = set(next((s[4:-1] for s in modes if s.startswith("[GC:")), "").split())
-        if not {"G21", "G90", "G94", "G54"} <= words:
-            raise DeviceError(f"turntable on {self.port} did not take {MODAL_LINE!r}: parser state {modes!r}")
 
     def _check_counter(self, status: MachineStatus) -> None:
         """A rebooted board restarts MPos at zero: its counter no longer matches where the table is."""
@@ -231,23 +167,6 @@ class Turntable:
         """Hold the line: no action runs until the block ends (recovery works inside one)."""
         with self._io:
             yield
-
-    def _check_settings(self, settings: dict[int, float]) -> None:
-        cfg = self.config
-        expected: dict[int, tuple[float, str]] = {}
-        for j, axis in enumerate((0, self._axis)):
-            expected[100 + axis] = (cfg.steps_per_deg[j], "steps/degree")
-            expected[110 + axis] = (cfg.max_rate_deg_min[j], "degree/min max rate")
-            expected[120 + axis] = (cfg.accel_deg_s2[j], "degree/s^2 acceleration")
-        wrong = []
-        for number, (want, unit) in expected.items():
-            have = settings.get(number)
-            if have is None:
-                wrong.append(f"${number} missing (expected {want:g} {unit})")
-            elif abs(have - want) > cfg.settings_rel_tol * abs(want):
-                wrong.append(f"${number}={have:g} (expected {want:g} {unit})")
-        if wrong:
-            raise GrblSettingsError(f"turntable on {self.port} is configured differently from the rig: " + ", ".join(wrong))
 
     # ---- status -----------------------------------------------------------------------------
     def _note_status(self, status: MachineStatus) -> None:
@@ -412,7 +331,7 @@ class Turntable:
         """Clear an alarm lock without homing ($X)."""
         with self._io:
             self._guard(lambda: self._p.command("$X", self.config.reply_timeout_s))
-            self._guard(self._set_modal)
+            self._guard(lambda: set_modal_state(self._p, self.config.reply_timeout_s))
 
     def feed_hold(self) -> None:
         """Decelerate to a stop (`!`), keeping position; a running move waits through the hold."""
@@ -524,7 +443,7 @@ class Turntable:
         proto, cfg = self._p, self.config
         proto.line.write(b"\n")
         proto.await_reply("(empty line)", time.monotonic() + cfg.reply_timeout_s)
-        self._set_modal()
+        set_modal_state(self._p, self.config.reply_timeout_s)
         self._settle(self._read_reference())
         return self._known
 
@@ -538,7 +457,7 @@ class Turntable:
             self._p.drain()
             self._flight = (self._machine(self._known), self._machine(self._known))
             self._p.command("$H", self.config.home_timeout_s)  # startup lines run again after homing
-            self._set_modal()
+            set_modal_state(self._p, self.config.reply_timeout_s)
             self._settle(self._read_reference())
             self._loss = "none"
             self.position_exact = True
