@@ -130,21 +130,21 @@ def test_firmware_restart_mid_scan_then_station_restart_keeps_the_reference(firm
 
 def test_feed_hold_waits_on_real_firmware_and_cancel_resets_only_from_hold_0(firmware):
     with Turntable.connect(firmware.port, fast_config(feed_deg_min=1800.0)) as table:
-        moving = table.move_to(170.0, 40.0)
+        moving = table.move_to(90.0, 10.0)  # 3 s at 1800 degree/min on an idle machine
         time.sleep(0.3)
         table.feed_hold()
         time.sleep(1.0)
-        held = table.status() if moving.done else None
-        table.resume(timeout=10.0)
-        assert moving.wait(60.0) == pytest.approx((170.0, 40.0), abs=STEP)
-        assert held is None  # the move waits through the hold instead of failing
+        assert not moving.done  # the move waits through the hold instead of failing
+        table.resume(timeout=10.0)  # sent only once the firmware reported Hold:0
+        assert moving.wait(60.0) == pytest.approx((90.0, 10.0), abs=STEP)
+        assert "<Hold:1|" in firmware.traffic() and "<Hold:0|" in firmware.traffic()
         moving = table.move_to(0.0, 0.0)
         time.sleep(0.3)
         table.cancel(timeout=10.0)
         with pytest.raises(MoveCancelledError):
             moving.wait(30.0)
         stopped = table.position()
-        assert 0.0 < stopped[0] < 170.0 and table.status().state == "Idle"
+        assert 0.0 < stopped[0] < 90.0 and table.status().state == "Idle"
     assert "ALARM:3" not in firmware.traffic()
     with Turntable.connect(firmware.port, fast_config()) as table:  # a fresh connect reads the same position
         assert table.position() == pytest.approx(stopped, abs=STEP)

@@ -343,11 +343,24 @@ def test_the_reference_restored_after_a_reboot_survives_the_next_connect():
             with pytest.raises(UnexpectedResetError):
                 table.move_to(150.0, 20.0).wait(5.0)
             assert table.recover().exact
-        with Turntable.connect(fake.port, FAST) as table:  # a restarted `station` soft-resets the board
-            assert table.position() == pytest.approx((100.0, 20.0), abs=HALF_STEP)
             assert table.reference.g54[0] == pytest.approx(-100.0, abs=HALF_STEP)
             table.move_to(150.0, 20.0).wait(5.0)
-            assert fake.firmware.position() == pytest.approx((150.0, 20.0), abs=HALF_STEP)
+        with Turntable.connect(fake.port, FAST) as table:  # a restarted `station` soft-resets the board
+            assert table.position_exact
+            assert table.position() == pytest.approx((150.0, 20.0), abs=HALF_STEP)
+            table.move_to(200.0, 30.0).wait(5.0)
+            assert fake.firmware.position() == pytest.approx((200.0, 30.0), abs=HALF_STEP)
+
+
+def test_a_board_powered_up_since_its_reference_was_set_is_not_called_exact(caplog):
+    with start_fake_turntable(time_scale=SCALE) as fake:
+        with Turntable.connect(fake.port, FAST) as table:
+            table.move_to(100.0, 20.0).wait(5.0)
+            table.reference_to((10.0, 5.0), exact=True)  # G54 now (90, 15)
+        fake.firmware.power_cycle()  # while no `station` runs: MPos restarts at zero
+        with Turntable.connect(fake.port, FAST) as table:
+            assert not table.position_exact
+        assert "as after a power-up" in caplog.text
 
 
 def test_a_wco_that_disagrees_with_the_stored_g54_is_refused():

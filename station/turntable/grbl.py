@@ -119,7 +119,12 @@ class Turntable:
     def _check_counter(self, status: MachineStatus) -> None:
         """A rebooted board restarts MPos at zero: its counter no longer matches where the table is."""
         mpos = status.machine_position(self._wco)
-        if mpos is None or self._rest_mpos is None:
+        if mpos is None:
+            return
+        if self._rest_mpos is None:  # first connect: nothing seen before, but a fresh count is telling
+            if all(m == 0.0 for m in mpos) and self._reference and any(abs(g) > 1e-3 for g in self._reference.g54):
+                self._mark_inexact("it reports MPos 0 with a stored G54 reference, as after a power-up: "
+                                   "if the table was moved or the board restarted since, angles are off")
             return
         tol = self._tolerances()
         here = (mpos[0], mpos[self._axis])
