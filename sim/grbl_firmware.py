@@ -39,6 +39,7 @@ FACTORY_SETTINGS: dict[int, float] = {  # GRBL 1.1h defaults.h (DEFAULTS_GENERIC
 RIG_SETTINGS: dict[int, float] = {100: 44.444, 101: 44.444, 110: 3600.0, 111: 1800.0, 120: 180.0, 121: 90.0}
 BANNERS = {"grbl": "Grbl 1.1h ['$' for help]", "grblhal": "GrblHAL 1.1f ['$' or '$HELP' for help]"}
 _UNLOCK_MSG = "[MSG:'$H'|'$X' to unlock]"
+_FEED_OVERRIDE = {0x90: None, 0x91: 10, 0x92: -10, 0x93: 1, 0x94: -1}  # None: back to 100 %
 
 
 @dataclass
@@ -109,6 +110,8 @@ class GrblFirmware:
                     self._cycle_start(now)
                 elif byte == 0x85:
                     self._jog_cancel(now)
+                elif byte in _FEED_OVERRIDE:
+                    self._override(byte)
                 elif byte >= 0x80:
                     continue
                 elif byte in (0x0A, 0x0D):
@@ -217,6 +220,8 @@ class GrblFirmware:
         self._g92 = [0.0] * AXES
         self._planned = list(self._mpos)
         self._absolute, self._motion, self._feed, self._inches = True, 0, None, False
+        self._feed_pct = 100  # feed override, back to 100 % on every reset
+        self._ovr_due = True  # real GRBL: WCO on the first report after a reset, Ov on the next
         self._reports, self._wco_dirty = 0, True
         self._event = None
         self._out += f"\r\n{BANNERS[self.flavour]}\r\n".encode()
@@ -272,7 +277,10 @@ class GrblFirmware:
                 return
             rates = tuple(self.settings[110 + i] for i in range(AXES))
             accels = tuple(self.settings[120 + i] for i in range(AXES))
-            seg = move_segment(t, tuple(self._mpos), block.target, rates, accels, block.feed)
+            feed = block.feed
+            if feed is not None and block.kind == "move":  # jogs ignore the feed override, as in GRBL
+                feed *= self._feed_pct / 100.0
+            seg = move_segment(t, tuple(self._mpos), block.target, rates, accels, feed)
             if seg.length == 0.0:
                 self._queue.popleft()
                 continue
@@ -329,6 +337,12 @@ class GrblFirmware:
         if self._state in ("Hold", "Door") and self._sub == 0:  # ~ during Hold:1 is ignored
             self._state = "Idle"
             self._start_next(now)
+
+    def _override(self, byte: int) -> None:
+        """Feed override (0x90-0x94), 10-200 %: here it applies from the next block GRBL plans."""
+        step = _FEED_OVERRIDE[byte]
+        self._feed_pct = 100 if step is None else min(200, max(10, self._feed_pct + step))
+        self._ovr_due = True  # the next report without WCO carries Ov, as GRBL's does after a change
 
     def _jog_cancel(self, now: float) -> None:
         if self._state == "Jog":
@@ -447,8 +461,9 @@ class GrblFirmware:
         if self._reports % 10 == 0 or self._wco_dirty:
             fields.append("WCO:" + ",".join(f"{g:.3f}" for g in self.wco()))
             self._wco_dirty = False
-        elif self._reports % 10 == 5:
-            fields.append("Ov:100,100,100")
+        elif self._reports % 10 == 5 or self._ovr_due:
+            self._ovr_due = False
+            fields.append(f"Ov:{self._feed_pct},100,100")
         self._reports += 1
         line = "<" + "|".join(fields) + ">"
         if self.faults.garble_status > 0:

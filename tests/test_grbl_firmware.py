@@ -194,6 +194,23 @@ def test_g54_from_g10_l20_survives_reset_and_power_cycle_while_g92_does_not():
     assert parse_status(send(fw, b"?")).wco == (-70.0, -5.0, 0.0)
 
 
+def test_feed_override_slows_the_next_move_and_shows_in_the_status_report():
+    fw, clock = board()
+    for _ in range(6):
+        fw.write(b"\x92")  # -10 % each
+    reports = [parse_status(send(fw, b"?")) for _ in range(2)]  # Ov comes on the next report without WCO
+    assert [r.overrides for r in reports if r.overrides] == [(40, 100, 100)]
+    send(fw, b"G1X90F1800\n")
+    full = move_segment(0.0, (0.0,) * 3, (90.0, 0.0, 0.0), (3600.0, 1800.0, 500.0), (180.0, 90.0, 10.0), 1800.0)
+    clock.now += full.duration + 0.1
+    assert parse_status(send(fw, b"?")).state == "Run"  # 40 % of the feed: far from done
+    assert parse_status(send(fw, b"?")).feed == pytest.approx(720.0, abs=1.0)
+    send(fw, b"!")
+    clock.now += 5.0
+    send(fw, b"\x18")  # from Hold:0: back to 100 % like every reset
+    assert [parse_status(send(fw, b"?")).overrides for _ in range(2)][1] == (100, 100, 100)
+
+
 def test_reset_during_motion_gives_alarm_3_banner_and_unlock_message():
     fw, clock = board()
     send(fw, b"G1X90F600\n")

@@ -372,6 +372,15 @@ def test_a_wco_that_disagrees_with_the_stored_g54_is_refused():
         Reference((1.0, 0.0, 0.0), (0.0, 0.0, 0.0)).check(parse_status("<Idle|MPos:0,0,0|WCO:0,0,0>"), "port")
 
 
+def test_a_40_percent_feed_override_does_not_time_out_a_move():
+    with start_fake_turntable() as fake:  # real time: the allowance is all that stands between
+        with Turntable.connect(fake.port, replace(FAST, motion_margin_s=0.05)) as table:
+            for _ in range(6):
+                fake.firmware.write(b"\x92")  # the operator turns the feed knob down to 40 %
+            assert [table.status().overrides for _ in range(2)][1] == (40, 100, 100)
+            assert table.move_to(30.0, 0.0).wait(30.0) == pytest.approx((30.0, 0.0), abs=HALF_STEP)
+
+
 def test_move_time_follows_the_vector_feed_and_the_feed_override():
     rates, accels = (3600.0, 1800.0), (180.0, 90.0)
     alone = move_seconds((90.0, 0.0), 1800.0, rates, accels)
