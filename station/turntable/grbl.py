@@ -105,7 +105,7 @@ class Turntable:
         check_settings(self.info.settings, cfg, self._axis, self.port)
         check_startup_echoes(shake.startup, self.port)
         if proto.query_status(cfg.reply_timeout_s).state != "Alarm":  # G-code is locked in Alarm: after $X/$H
-            set_modal_state(self._p, self.config.reply_timeout_s)
+            set_modal_state(proto, cfg.reply_timeout_s)
         self._check_counter(self._read_reference())
 
     def _read_reference(self) -> MachineStatus:
