@@ -4,7 +4,7 @@ Reproduces what docs/rig.md records of real firmware: banner on reset, one `ok`/
 realtime bytes, key-based status reports, `$I $$ $G $# $N $C $H $X $J=` (error:8 where GRBL refuses
 them while moving), G90/G91/G0/G1/G4/G10 L20/G20/G21/G92 with F, ALARM:3 on reset during motion
 (after the `ok` of a pending G4), critical ALARM:2 soft-limit and ALARM:1 hard-limit states that
-ignore everything until 0x18, boot into Alarm when homing is enabled, and `$N` startup lines run
+ignore everything until 0x18 (which then answers the line that tripped ALARM:2), boot into Alarm when homing is enabled, and `$N` startup lines run
 after each reset with their `>line:ok` echo. Settings, the G54 offset and `$N` lines are EEPROM:
 they survive resets and power cycles. A new board has GRBL's factory settings. The clock is evaluated lazily:
 every `write`/`read`/`position` call first advances the machine to `clock()`, so no thread is needed
@@ -215,6 +215,7 @@ class GrblFirmware:
         self._rx = bytearray()
         self._blocked = False  # a G4 or $H is running: later lines wait
         self._critical = False
+        self._ok_on_reset = False
         self._sub = 0  # Hold:N / Door:N
         self._cancel_jog = False
         self._g92 = [0.0] * AXES
@@ -247,6 +248,8 @@ class GrblFirmware:
         was_alarm = self._state == "Alarm"
         dwell_pending = any(block.kind == "dwell" for block in self._queue)
         self._halt(now)
+        if self._ok_on_reset:
+            self._reply_ok()
         if moving:
             if dwell_pending:
                 self._out += b"ok\r\n"  # real GRBL answers the pending G4 P0 before the alarm
@@ -415,6 +418,7 @@ class GrblFirmware:
                 self._halt(now)
                 self._state, self._critical = "Alarm", True
                 self._out += b"ALARM:2\r\n[MSG:Reset to continue]\r\n"
+                self._ok_on_reset = True  # GRBL answers the tripping line only once reset frees it
                 return
             self.enqueue(PlannerBlock("move", target, block.feed if block.motion == 1 else None), now)
         if not self._blocked:

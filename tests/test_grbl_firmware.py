@@ -226,7 +226,7 @@ def test_soft_limit_alarm_2_ignores_everything_until_reset():
     send(fw, b"$X\n")
     assert send(fw, b"G1Y-500F100\n") == "ALARM:2\r\n[MSG:Reset to continue]\r\n"
     assert send(fw, b"$X\n?") == ""
-    assert send(fw, b"\x18") == "\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n"
+    assert send(fw, b"\x18") == "ok\r\n\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n"
 
 
 def test_homing_enabled_boots_into_alarm_and_homing_answers_ok_when_done():
