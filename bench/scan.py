@@ -26,7 +26,8 @@ from station.capture.plan import ScanPlan, default_elevations
 from station.capture.session import ScanSession, SessionConfig
 from station.rig_geometry import RigGeometry
 from station.scanfolder import ScanFolder, atomic_write_json
-from station.turntable.grbl import TurntableConfig, trapezoid_seconds
+from station.turntable.grbl import TurntableConfig
+from station.turntable.planning import trapezoid_seconds
 
 
 def motion_seconds(plan: ScanPlan, config: TurntableConfig) -> float:

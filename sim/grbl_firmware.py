@@ -1,9 +1,12 @@
 """A GRBL 1.1h / grblHAL firmware emulator: bytes in, bytes out, motion in (scaled) real time.
 
 Reproduces what docs/rig.md records of real firmware: banner on reset, one `ok`/`error:N` per line,
-realtime bytes, key-based status reports, `$I $$ $G $# $H $X $J=`, G90/G91/G0/G1/G4/G92 with F,
-ALARM:3 on reset during motion, critical ALARM:2 soft-limit and ALARM:1 hard-limit states that ignore
-everything until 0x18, and boot into Alarm when homing is enabled. The clock is evaluated lazily:
+realtime bytes, key-based status reports, `$I $$ $G $# $N $C $H $X $J=` (error:8 where GRBL refuses
+them while moving), G90/G91/G0/G1/G4/G10 L20/G20/G21/G92 with F, ALARM:3 on reset during motion
+(after the `ok` of a pending G4), critical ALARM:2 soft-limit and ALARM:1 hard-limit states that
+ignore everything until 0x18 (which then answers the line that tripped ALARM:2), boot into Alarm when homing is enabled, and `$N` startup lines run
+after each reset with their `>line:ok` echo. Settings, the G54 offset and `$N` lines are EEPROM:
+they survive resets and power cycles. A new board has GRBL's factory settings. The clock is evaluated lazily:
 every `write`/`read`/`position` call first advances the machine to `clock()`, so no thread is needed
 here; the links in `sim.grbl_links` pump it.
 
@@ -26,14 +29,17 @@ from sim.grbl_motion import PlannerBlock, Segment, decel_segment, move_segment, 
 from sim.grbl_system import run_system_command
 
 AXES = 3  # X turntable (degrees), Y tilt arm (degrees), Z unused
-DEFAULT_SETTINGS: dict[int, float] = {
+FACTORY_SETTINGS: dict[int, float] = {  # GRBL 1.1h defaults.h (DEFAULTS_GENERIC), as a fresh EEPROM lists them
     0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
     20: 0, 21: 0, 22: 0, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
-    100: 44.444, 101: 44.444, 102: 250.0, 110: 3600.0, 111: 1800.0, 112: 500.0,
-    120: 180.0, 121: 90.0, 122: 10.0, 130: 36000.0, 131: 100.0, 132: 200.0,
+    100: 250.0, 101: 250.0, 102: 250.0, 110: 500.0, 111: 500.0, 112: 500.0,
+    120: 10.0, 121: 10.0, 122: 10.0, 130: 200.0, 131: 200.0, 132: 200.0,
 }
+# The turntable rig's settings (what shared/tools/grbl-sim/EEPROM.rig.DAT holds): degrees, not mm.
+RIG_SETTINGS: dict[int, float] = {100: 44.444, 101: 44.444, 110: 3600.0, 111: 1800.0, 120: 180.0, 121: 90.0}
 BANNERS = {"grbl": "Grbl 1.1h ['$' for help]", "grblhal": "GrblHAL 1.1f ['$' or '$HELP' for help]"}
 _UNLOCK_MSG = "[MSG:'$H'|'$X' to unlock]"
+_FEED_OVERRIDE = {0x90: None, 0x91: 10, 0x92: -10, 0x93: 1, 0x94: -1}  # None: back to 100 %
 
 
 @dataclass
@@ -46,6 +52,7 @@ class Faults:
     alarm_on_move: int | None = None  # a hard limit (ALARM:1) trips halfway through that move
     vanish_on_move: int | None = None  # the USB link drops halfway through that move
     replug_after_s: float | None = 0.2  # wall seconds until a vanished link returns (None: never)
+    ignore_resets: int = 0  # the next N ctrl-x bytes are lost, as while a board is still booting
 
 
 class GrblFirmware:
@@ -60,7 +67,9 @@ class GrblFirmware:
             raise ValueError(f"time_scale must be positive, got {time_scale!r}")
         self.flavour = flavour
         self.time_scale = time_scale
-        self.settings = dict(DEFAULT_SETTINGS) | (settings or {})
+        self.settings = dict(FACTORY_SETTINGS) | (settings or {})
+        self.g54 = [0.0] * AXES  # EEPROM, like the settings and the startup lines
+        self.startup_lines = ["", ""]
         self.settings[22] = 1 if homing else self.settings[22]
         self.settings[20] = 1 if soft_limits else self.settings[20]
         self.faults = Faults()
@@ -85,7 +94,9 @@ class GrblFirmware:
             if not self.plugged:
                 return
             for byte in data:
-                if byte == 0x18:
+                if byte == 0x18 and self.faults.ignore_resets > 0:
+                    self.faults.ignore_resets -= 1
+                elif byte == 0x18:
                     self._soft_reset(now)
                 elif self._critical:
                     continue  # rig.md: everything is ignored until 0x18
@@ -99,6 +110,8 @@ class GrblFirmware:
                     self._cycle_start(now)
                 elif byte == 0x85:
                     self._jog_cancel(now)
+                elif byte in _FEED_OVERRIDE:
+                    self._override(byte)
                 elif byte >= 0x80:
                     continue
                 elif byte in (0x0A, 0x0D):
@@ -202,28 +215,48 @@ class GrblFirmware:
         self._rx = bytearray()
         self._blocked = False  # a G4 or $H is running: later lines wait
         self._critical = False
+        self._ok_on_reset = False
         self._sub = 0  # Hold:N / Door:N
         self._cancel_jog = False
         self._g92 = [0.0] * AXES
         self._planned = list(self._mpos)
-        self._absolute, self._motion, self._feed = True, 0, None
+        self._absolute, self._motion, self._feed, self._inches = True, 0, None, False
+        self._feed_pct = 100  # feed override, back to 100 % on every reset
+        self._ovr_due = True  # real GRBL: WCO on the first report after a reset, Ov on the next
         self._reports, self._wco_dirty = 0, True
         self._event = None
         self._out += f"\r\n{BANNERS[self.flavour]}\r\n".encode()
-        if power_on and self._state == "Alarm":
+        if power_on:
+            self._after_boot(now)
+
+    def _after_boot(self, now: float) -> None:
+        """Alarm: the unlock message; otherwise run the `$N` startup lines, echoing `>line:status`."""
+        if self._state == "Alarm":
             self._out += f"{_UNLOCK_MSG}\r\n".encode()
+            return
+        for line in self.startup_lines:
+            if line:
+                before = len(self._out)
+                self._gcode("".join(line.split()).upper(), now)
+                reply = bytes(self._out[before:]).decode().strip() or "ok"
+                del self._out[before:]
+                self._out += f">{line}:{reply}\r\n".encode()
 
     def _soft_reset(self, now: float) -> None:
         moving = self._seg is not None and self._seg.kind != "dwell"
         homing = moving and self._seg.kind == "home"
         was_alarm = self._state == "Alarm"
+        dwell_pending = any(block.kind == "dwell" for block in self._queue)
         self._halt(now)
+        if self._ok_on_reset:
+            self._reply_ok()
         if moving:
+            if dwell_pending:
+                self._out += b"ok\r\n"  # real GRBL answers the pending G4 P0 before the alarm
             self._out += b"ALARM:6\r\n" if homing else b"ALARM:3\r\n"
         self._boot(now, power_on=False)
         self._state = "Alarm" if moving or was_alarm else "Idle"
-        if self._state == "Alarm":
-            self._out += f"{_UNLOCK_MSG}\r\n".encode()
+        self._after_boot(now)
 
     def _halt(self, now: float) -> None:
         """Stop dead (reset, alarm, power loss): the counter keeps the steps taken so far."""
@@ -247,7 +280,10 @@ class GrblFirmware:
                 return
             rates = tuple(self.settings[110 + i] for i in range(AXES))
             accels = tuple(self.settings[120 + i] for i in range(AXES))
-            seg = move_segment(t, tuple(self._mpos), block.target, rates, accels, block.feed)
+            feed = block.feed
+            if feed is not None and block.kind == "move":  # jogs ignore the feed override, as in GRBL
+                feed *= self._feed_pct / 100.0
+            seg = move_segment(t, tuple(self._mpos), block.target, rates, accels, feed)
             if seg.length == 0.0:
                 self._queue.popleft()
                 continue
@@ -305,6 +341,12 @@ class GrblFirmware:
             self._state = "Idle"
             self._start_next(now)
 
+    def _override(self, byte: int) -> None:
+        """Feed override (0x90-0x94), 10-200 %: here it applies from the next block GRBL plans."""
+        step = _FEED_OVERRIDE[byte]
+        self._feed_pct = 100 if step is None else min(200, max(10, self._feed_pct + step))
+        self._ovr_due = True  # the next report without WCO carries Ov, as GRBL's does after a change
+
     def _jog_cancel(self, now: float) -> None:
         if self._state == "Jog":
             self._hold(now, "Jog")
@@ -348,16 +390,23 @@ class GrblFirmware:
 
     def _gcode(self, text: str, now: float) -> None:
         try:
-            block = parse_block(text, self._absolute, self._motion, self._feed)
+            block = parse_block(text, self._absolute, self._motion, self._feed, inches=self._inches)
         except GcodeError as exc:
             self._error(exc.code)
             return
-        wco = self._g92
+        self._inches = block.inches
+        if self._state == "Check":  # check mode: parsed and answered, nothing executed
+            self._absolute, self._motion, self._feed = block.absolute, block.motion, block.feed
+            return self._reply_ok()
+        wco = self.wco()
+        if block.g10_l20 is not None:
+            self.g54 = [p - g - v if v is not None else c for p, g, v, c in zip(self._planned, self._g92, block.g10_l20, self.g54)]
+            self._wco_dirty = True
         if block.dwell is not None:
             self._queue.append(PlannerBlock("dwell", tuple(self._planned), seconds=block.dwell))
             self._blocked = True
         if block.g92 is not None:
-            self._g92 = [p - v if v is not None else g for p, v, g in zip(self._planned, block.g92, self._g92)]
+            self._g92 = [p - c - v if v is not None else g for p, c, v, g in zip(self._planned, self.g54, block.g92, self._g92)]
             self._wco_dirty = True
         if block.g92_clear:
             self._g92, self._wco_dirty = [0.0] * AXES, True
@@ -369,6 +418,7 @@ class GrblFirmware:
                 self._halt(now)
                 self._state, self._critical = "Alarm", True
                 self._out += b"ALARM:2\r\n[MSG:Reset to continue]\r\n"
+                self._ok_on_reset = True  # GRBL answers the tripping line only once reset frees it
                 return
             self.enqueue(PlannerBlock("move", target, block.feed if block.motion == 1 else None), now)
         if not self._blocked:
@@ -376,20 +426,28 @@ class GrblFirmware:
         elif self._seg is None:
             self._start_next(now)
 
+    def wco(self) -> list[float]:
+        """Work coordinate offset: G54 (EEPROM) plus G92 (cleared by every reset)."""
+        return [c + g for c, g in zip(self.g54, self._g92)]
+
     def _within_travel(self, target: tuple[float, ...]) -> bool:
+        """Soft limits: GRBL's machine travel is [-$13x, 0] (homing sets the origin at the top)."""
         if not self.settings[20]:
             return True
-        return all(-1e-6 <= t <= self.settings[130 + i] + 1e-6 for i, t in enumerate(target))
+        return all(-self.settings[130 + i] - 1e-6 <= t <= 1e-6 for i, t in enumerate(target))
 
     def _on_steps(self, pos: list[float] | tuple[float, ...]) -> tuple[float, ...]:
         """Snap to whole motor steps ($100-$102): targets and stops are step counts in GRBL."""
         return tuple(round(p * self.settings[100 + i]) / self.settings[100 + i] for i, p in enumerate(pos))
 
     def enqueue(self, block: PlannerBlock, now: float) -> None:
-        """Plan a block (target snapped to steps); it starts at once when the machine is idle."""
+        """Plan a block (target snapped to steps); it starts at once when the machine is idle.
+
+        The parser's position stays the programmed one, unsnapped, as GRBL's gc_state.position does.
+        """
+        self._planned = list(block.target)
         block.target = self._on_steps(block.target)
         self._queue.append(block)
-        self._planned = list(block.target)
         if self._seg is None and self._state not in ("Hold", "Door"):
             self._start_next(now)
 
@@ -405,10 +463,11 @@ class GrblFirmware:
             fields.append(f"Bf:{35 - len(self._queue)},1023")
         fields.append(f"FS:{speed:.0f},0")
         if self._reports % 10 == 0 or self._wco_dirty:
-            fields.append("WCO:" + ",".join(f"{g:.3f}" for g in self._g92))
+            fields.append("WCO:" + ",".join(f"{g:.3f}" for g in self.wco()))
             self._wco_dirty = False
-        elif self._reports % 10 == 5:
-            fields.append("Ov:100,100,100")
+        elif self._reports % 10 == 5 or self._ovr_due:
+            self._ovr_due = False
+            fields.append(f"Ov:{self._feed_pct},100,100")
         self._reports += 1
         line = "<" + "|".join(fields) + ">"
         if self.faults.garble_status > 0:

@@ -28,7 +28,7 @@ from typing import Literal
 import serial
 
 from sim import protocol_fakegrbl
-from sim.grbl_firmware import GrblFirmware
+from sim.grbl_firmware import RIG_SETTINGS, GrblFirmware
 from sim.protocol_fakegrbl import ByteDevice
 
 _names = itertools.count()
@@ -183,6 +183,10 @@ def attach(device: ByteDevice, route: Literal["url", "pty"] = "url") -> FakeTurn
     raise ValueError(f"unknown route {route!r}; expected 'url' or 'pty'")
 
 
-def start_fake_turntable(route: Literal["url", "pty"] = "url", **firmware_kwargs: object) -> FakeTurntable:
-    """Build a GrblFirmware(**firmware_kwargs) and expose it; use as a context manager."""
-    return attach(GrblFirmware(**firmware_kwargs), route)
+def start_fake_turntable(route: Literal["url", "pty"] = "url", settings: dict[int, float] | None = None,
+                         **firmware_kwargs: object) -> FakeTurntable:
+    """A board loaded with the rig's settings (RIG_SETTINGS, then `settings`), exposed; a context manager.
+
+    A bare GrblFirmware() has GRBL's factory settings, as a new board does.
+    """
+    return attach(GrblFirmware(settings=RIG_SETTINGS | (settings or {}), **firmware_kwargs), route)

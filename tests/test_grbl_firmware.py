@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from sim.grbl_firmware import GrblFirmware
+from sim.grbl_firmware import FACTORY_SETTINGS, RIG_SETTINGS, GrblFirmware
 from sim.grbl_motion import move_segment
 from station.turntable.errors import GarbledStatusError
 from station.turntable.status import parse_status
@@ -29,7 +29,7 @@ class ManualClock:
 
 def board(**kwargs: object) -> tuple[GrblFirmware, ManualClock]:
     clock = ManualClock()
-    fw = GrblFirmware(clock=clock, **kwargs)
+    fw = GrblFirmware(clock=clock, settings=RIG_SETTINGS | kwargs.pop("settings", {}), **kwargs)
     fw.read()  # the power-on banner
     return fw, clock
 
@@ -78,8 +78,9 @@ def test_homing_while_moving_is_error_8_and_gcode_in_alarm_is_error_9():
 def test_jog_beyond_travel_is_error_15_with_soft_limits():
     fw, _ = board(homing=True, soft_limits=True)
     send(fw, b"$X\n")
-    assert send(fw, b"$J=G90Y500F100\n") == "error:15\r\n"
-    assert send(fw, b"$J=G90Y5F100\n") == "ok\r\n"
+    assert send(fw, b"$J=G90Y5F100\n") == "error:15\r\n"  # machine travel is [-$131, 0], as in GRBL
+    assert send(fw, b"$J=G90Y-500F100\n") == "error:15\r\n"
+    assert send(fw, b"$J=G90Y-5F100\n") == "ok\r\n"
 
 
 def test_motion_takes_the_trapezoid_time_scaled_and_g4_p0_answers_when_done():
@@ -100,7 +101,7 @@ def test_motion_takes_the_trapezoid_time_scaled_and_g4_p0_answers_when_done():
 
 
 def test_position_is_readable_from_another_thread_during_motion():
-    fw = GrblFirmware(time_scale=0.02)
+    fw = GrblFirmware(time_scale=0.02, settings=RIG_SETTINGS)
     fw.write(b"G1X180F3600\n")
     seen: list[float] = []
     reader = threading.Thread(target=lambda: [seen.append(fw.position()[0]) or time.sleep(0.005) for _ in range(20)])
@@ -127,6 +128,89 @@ def test_feed_hold_decelerates_then_holds_and_resume_is_ignored_until_hold_0():
     assert fw.position()[0] == pytest.approx(360.0, abs=HALF_STEP)
 
 
+def test_a_new_board_lists_grbl_factory_settings():
+    fw = GrblFirmware()
+    fw.read()
+    listed = dict(line[1:].split("=") for line in send(fw, b"$$\n").split("\r\n") if line.startswith("$"))
+    assert {int(k): float(v) for k, v in listed.items()} == FACTORY_SETTINGS
+    assert (listed["100"], listed["110"], listed["120"], listed["130"]) == ("250.000", "500.000", "10.000", "200.000")
+
+
+def test_system_commands_that_need_idle_are_error_8_while_moving_and_g_c_x_are_not():
+    fw, clock = board()
+    send(fw, b"G1X90F600\n")
+    for command in (b"$I\n", b"$#\n", b"$N\n", b"$$\n", b"$N0=G21\n", b"$100=44.444\n", b"$C\n"):
+        assert send(fw, command) == "error:8\r\n", command
+    assert send(fw, b"$G\n").endswith("ok\r\n")
+    assert send(fw, b"$X\n") == "ok\r\n"  # no alarm to clear: no effect, as on real GRBL
+    clock.now += 20.0
+    assert send(fw, b"$#\n").startswith("[G54:0.000,0.000,0.000]")
+
+
+def test_reset_mid_move_answers_the_pending_dwell_before_alarm_3():
+    fw, clock = board()
+    send(fw, b"G1X90F600\n")
+    assert send(fw, b"G4P0\n") == ""
+    clock.now += 1.0
+    assert send(fw, b"\x18").startswith("ok\r\nALARM:3\r\n\r\nGrbl 1.1h")
+
+
+def test_startup_lines_are_stored_run_after_each_reset_and_echoed():
+    fw, clock = board()
+    assert send(fw, b"$N\n") == "$N0=\r\n$N1=\r\nok\r\n"
+    assert send(fw, b"$N0=G20\n") == "ok\r\n"
+    assert send(fw, b"$N\n") == "$N0=G20\r\n$N1=\r\nok\r\n"
+    assert send(fw, b"\x18") == "\r\nGrbl 1.1h ['$' for help]\r\n>G20:ok\r\n"
+    assert "G20" in send(fw, b"$G\n")
+    send(fw, b"G1X1F10\n")  # inches: one inch is 25.4 degrees of turntable
+    clock.now += 300.0
+    assert fw.position()[0] == pytest.approx(25.4, abs=HALF_STEP)
+    fw.power_cycle()
+    assert fw.read().endswith(b">G20:ok\r\n")  # EEPROM: kept through a power cycle
+
+
+def test_check_mode_parses_without_moving_and_leaving_it_resets():
+    fw, clock = board()
+    assert send(fw, b"$C\n") == "[MSG:Enabled]\r\nok\r\n"
+    assert send(fw, b"G1X90F600\n") == "ok\r\n"
+    assert parse_status(send(fw, b"?")).state == "Check"
+    clock.now += 20.0
+    assert fw.position() == (0.0, 0.0)
+    assert send(fw, b"$C\n") == "[MSG:Disabled]\r\nok\r\n\r\nGrbl 1.1h ['$' for help]\r\n"
+
+
+def test_g54_from_g10_l20_survives_reset_and_power_cycle_while_g92_does_not():
+    fw, clock = board()
+    send(fw, b"G1X30F3600\n")
+    clock.now += 10.0
+    assert send(fw, b"G10L20P1X100Y5\n") == "ok\r\n"
+    assert send(fw, b"$#\n").startswith("[G54:-70.000,-5.000,0.000]")
+    send(fw, b"G92X0\n")
+    assert parse_status(send(fw, b"?")).wco == (30.0, -5.0, 0.0)
+    send(fw, b"\x18")
+    assert parse_status(send(fw, b"?")).wco == (-70.0, -5.0, 0.0)  # G92 gone, G54 kept
+    fw.power_cycle()
+    fw.read()
+    assert parse_status(send(fw, b"?")).wco == (-70.0, -5.0, 0.0)
+
+
+def test_feed_override_slows_the_next_move_and_shows_in_the_status_report():
+    fw, clock = board()
+    for _ in range(6):
+        fw.write(b"\x92")  # -10 % each
+    reports = [parse_status(send(fw, b"?")) for _ in range(2)]  # Ov comes on the next report without WCO
+    assert [r.overrides for r in reports if r.overrides] == [(40, 100, 100)]
+    send(fw, b"G1X90F1800\n")
+    full = move_segment(0.0, (0.0,) * 3, (90.0, 0.0, 0.0), (3600.0, 1800.0, 500.0), (180.0, 90.0, 10.0), 1800.0)
+    clock.now += full.duration + 0.1
+    assert parse_status(send(fw, b"?")).state == "Run"  # 40 % of the feed: far from done
+    assert parse_status(send(fw, b"?")).feed == pytest.approx(720.0, abs=1.0)
+    send(fw, b"!")
+    clock.now += 5.0
+    send(fw, b"\x18")  # from Hold:0: back to 100 % like every reset
+    assert [parse_status(send(fw, b"?")).overrides for _ in range(2)][1] == (100, 100, 100)
+
+
 def test_reset_during_motion_gives_alarm_3_banner_and_unlock_message():
     fw, clock = board()
     send(fw, b"G1X90F600\n")
@@ -140,9 +224,9 @@ def test_reset_during_motion_gives_alarm_3_banner_and_unlock_message():
 def test_soft_limit_alarm_2_ignores_everything_until_reset():
     fw, clock = board(homing=True, soft_limits=True)
     send(fw, b"$X\n")
-    assert send(fw, b"G1Y500F100\n") == "ALARM:2\r\n[MSG:Reset to continue]\r\n"
+    assert send(fw, b"G1Y-500F100\n") == "ALARM:2\r\n[MSG:Reset to continue]\r\n"
     assert send(fw, b"$X\n?") == ""
-    assert send(fw, b"\x18") == "\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n"
+    assert send(fw, b"\x18") == "ok\r\n\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n"
 
 
 def test_homing_enabled_boots_into_alarm_and_homing_answers_ok_when_done():

@@ -129,6 +129,10 @@ def test_turntable_faults_mid_scan_are_recovered_and_the_scan_completes(tmp_path
     summary, _, _ = _scan(tmp_path / "scan", plan, inject=inject)
     _assert_complete(tmp_path / "scan", plan)
     assert summary.recoveries >= 1
+    # A reboot, unplug or hard limit mid-move loses steps: every later pose is a best guess, and says so.
+    flagged = [e.file for e in ScanFolder(tmp_path / "scan").read_manifest() if e.extra.get("pose_exact") is False]
+    assert flagged
+    assert flagged == [f.file for f in plan.frames()][len(plan.frames()) - len(flagged):]
 
 
 def test_a_camera_that_stays_busy_is_retried(tmp_path):

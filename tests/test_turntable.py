@@ -6,7 +6,9 @@ emulated stage physically is) or in a typed error naming the fault.
 
 from __future__ import annotations
 
+import math
 import time
+from dataclasses import replace
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -23,11 +25,15 @@ from station.turntable.errors import (
     GrblSettingsError,
     MoveCancelledError,
     NotGrblError,
+    ReferenceMismatchError,
+    SoftLimitError,
     TiltLimitError,
     UnexpectedResetError,
     WaitTimeoutError,
 )
 from station.turntable.grbl import Turntable, TurntableConfig
+from station.turntable.planning import move_seconds, trapezoid_seconds
+from station.turntable.reference import Reference
 from station.turntable.status import parse_status
 
 pytestmark = pytest.mark.timeout(60)
@@ -70,7 +76,32 @@ def test_shortest_rotation_goes_backwards_and_continuous_always_forwards():
         table.move_to(350.0, 0.0).wait(5.0)
         assert table.position()[0] == pytest.approx(-10.0, abs=HALF_STEP)  # -10 is shorter than +350
         assert table.move_to(10.0, 0.0, rotation="continuous").wait(5.0)[0] == pytest.approx(10.0, abs=HALF_STEP)
-        assert table.move_to(5.0, 0.0, rotation="continuous").wait(5.0)[0] == pytest.approx(365.0, abs=HALF_STEP)
+        assert table.move_to(5.0, 0.0, rotation="continuous").wait(5.0)[0] == pytest.approx(5.0 + 360.0 - 360.0, abs=HALF_STEP)
+
+
+def test_x_stays_inside_its_window_however_many_turns_a_scan_makes():
+    with start_fake_turntable(time_scale=0.005) as fake:
+        with Turntable.connect(fake.port, replace(FAST, x_range_deg=(-180.0, 540.0))) as table:
+            seen = []
+            for _ring in range(3):
+                for angle in (0.0, 120.0, 240.0):
+                    seen.append(table.move_to(angle, 0.0, rotation="continuous").wait(10.0)[0])
+            assert max(seen) <= 540.0 and min(seen) >= -180.0
+            assert seen[:6] == pytest.approx([0.0, 120.0, 240.0, 360.0, 480.0, 240.0], abs=HALF_STEP)  # one unwind
+            assert angle_error(fake.firmware.position()[0], 240.0) < HALF_STEP
+
+
+def test_soft_limits_are_checked_before_anything_is_sent():
+    with rig(homing=True, soft_limits=True, settings={130: 300.0}) as (_, table):
+        with pytest.raises(SoftLimitError, match="narrower than one turn"):
+            table.move_to(90.0, 0.0)
+    with rig(homing=True, soft_limits=True, settings={130: 720.0}) as (fake, table):
+        assert table.settings()[20] == 1
+        with pytest.raises(SoftLimitError, match=r"\$131=200"):
+            table.move_to(0.0, 30.0)  # tilt travel is [-200, 0] machine, and work = machine here
+        assert table.move_to(-90.0, 0.0).wait(5.0)[0] == pytest.approx(-90.0, abs=HALF_STEP)
+        assert table.move_to(90.0, 0.0).wait(5.0)[0] == pytest.approx(-270.0, abs=HALF_STEP)  # wrapped into travel
+        assert fake.firmware.state == "Idle"
 
 
 def test_grblhal_board_is_identified_and_driven():
@@ -185,7 +216,7 @@ def test_giving_up_waiting_is_not_a_device_timeout():
             assert moving.wait(10.0)[0] == pytest.approx(180.0, abs=HALF_STEP)
 
 
-def test_alarm_mid_scan_is_typed_and_recovery_keeps_the_counted_position():
+def test_alarm_mid_scan_is_typed_and_recovery_keeps_the_counted_position_flagged_inexact():
     with rig() as (fake, table):
         fake.firmware.faults.alarm_on_move = 2
         table.move_to(90.0, 0.0).wait(5.0)
@@ -193,7 +224,7 @@ def test_alarm_mid_scan_is_typed_and_recovery_keeps_the_counted_position():
             table.move_to(180.0, 30.0).wait(5.0)
         assert caught.value.code == 1 and "Hard limit" in caught.value.meaning
         recovery = table.recover()
-        assert recovery.exact and not recovery.rehomed
+        assert not recovery.exact and not recovery.rehomed  # GRBL: a sudden halt likely lost steps
         stage = fake.firmware.position()
         assert recovery.position == pytest.approx(stage, abs=HALF_STEP)  # restored where it stopped
         table.move_to(180.0, 30.0).wait(5.0)
@@ -259,6 +290,106 @@ def test_port_that_never_comes_back_fails_recovery_with_a_disconnect():
         with pytest.raises(DeviceDisconnectedError, match="did not come back"):
             table.recover()
         assert time.monotonic() - started < FAST.reconnect_timeout_s + 2.0
+
+
+def test_connect_repeats_the_reset_when_a_booting_board_ignored_the_first():
+    with start_fake_turntable() as fake:
+        fake.firmware.faults.ignore_resets = 1
+        with pytest.raises(DeviceTimeoutError, match="no answer"):
+            Turntable.connect(fake.port, replace(FAST, banner_retry_s=5.0))  # one reset only
+        fake.firmware.faults.ignore_resets = 1
+        with Turntable.connect(fake.port, replace(FAST, banner_retry_s=0.3)) as table:
+            assert table.info.version == "1.1h"
+
+
+def test_connect_holds_a_moving_table_before_its_reset_so_no_alarm_3():
+    with start_fake_turntable(time_scale=0.3) as fake:
+        fake.firmware.write(b"G1X300F1800\n")  # a previous driver was killed mid-move
+        time.sleep(0.1)
+        with Turntable.connect(fake.port, FAST) as table:
+            assert table.position_exact and fake.firmware.state == "Idle"
+            stopped = fake.firmware.position()
+            assert 0.0 < stopped[0] < 300.0
+            assert table.position() == pytest.approx(stopped, abs=HALF_STEP)
+
+
+def test_a_reset_that_catches_the_table_moving_is_never_called_exact(caplog):
+    with start_fake_turntable(time_scale=0.3) as fake:
+        with Turntable.connect(fake.port, FAST) as table:
+            moving = table.move_to(170.0, 0.0)
+            time.sleep(0.2)
+            fake.firmware.write(b"\x18")  # someone else resets it mid-move: ok to G4 P0, then ALARM:3
+            with pytest.raises(GrblAlarm, match="ALARM:3"):
+                moving.wait(5.0)
+            recovery = table.recover()
+            assert not recovery.exact and not table.position_exact
+            assert "not exact" in caplog.text
+
+
+def test_a_stored_g20_startup_line_is_overridden_so_degrees_stay_degrees():
+    with start_fake_turntable(time_scale=SCALE) as fake:
+        fake.firmware.startup_lines[0] = "G20"
+        with Turntable.connect(fake.port, FAST) as table:
+            assert table.info.startup_lines == ("G20",)
+            table.move_to(10.0, 5.0).wait(5.0)
+            assert fake.firmware.position() == pytest.approx((10.0, 5.0), abs=HALF_STEP)
+
+
+def test_the_reference_restored_after_a_reboot_survives_the_next_connect():
+    with start_fake_turntable(time_scale=SCALE) as fake:
+        with Turntable.connect(fake.port, FAST) as table:
+            table.move_to(100.0, 20.0).wait(5.0)
+            fake.firmware.power_cycle()  # MPos restarts at zero where the table stands
+            with pytest.raises(UnexpectedResetError):
+                table.move_to(150.0, 20.0).wait(5.0)
+            assert table.recover().exact
+            assert table.reference.g54[0] == pytest.approx(-100.0, abs=HALF_STEP)
+            table.move_to(150.0, 20.0).wait(5.0)
+        with Turntable.connect(fake.port, FAST) as table:  # a restarted `station` soft-resets the board
+            assert table.position_exact
+            assert table.position() == pytest.approx((150.0, 20.0), abs=HALF_STEP)
+            table.move_to(200.0, 30.0).wait(5.0)
+            assert fake.firmware.position() == pytest.approx((200.0, 30.0), abs=HALF_STEP)
+
+
+def test_a_board_powered_up_since_its_reference_was_set_is_not_called_exact(caplog):
+    with start_fake_turntable(time_scale=SCALE) as fake:
+        with Turntable.connect(fake.port, FAST) as table:
+            table.move_to(100.0, 20.0).wait(5.0)
+            table.reference_to((10.0, 5.0), exact=True)  # G54 now (90, 15)
+        fake.firmware.power_cycle()  # while no `station` runs: MPos restarts at zero
+        with Turntable.connect(fake.port, FAST) as table:
+            assert not table.position_exact
+        assert "as after a power-up" in caplog.text
+
+
+def test_a_wco_that_disagrees_with_the_stored_g54_is_refused():
+    with start_fake_turntable() as fake:
+        fake.firmware.startup_lines[0] = "G92X5"  # G92.1 clears it; a board that kept it would be refused
+        with Turntable.connect(fake.port, FAST) as table:
+            assert table.reference.g92 == (0.0, 0.0, 0.0)
+    with pytest.raises(ReferenceMismatchError, match="WCO"):
+        Reference((1.0, 0.0, 0.0), (0.0, 0.0, 0.0)).check(parse_status("<Idle|MPos:0,0,0|WCO:0,0,0>"), "port")
+
+
+def test_a_40_percent_feed_override_does_not_time_out_a_move():
+    with start_fake_turntable() as fake:  # real time: the allowance is all that stands between
+        with Turntable.connect(fake.port, replace(FAST, motion_margin_s=0.05)) as table:
+            for _ in range(6):
+                fake.firmware.write(b"\x92")  # the operator turns the feed knob down to 40 %
+            assert [table.status().overrides for _ in range(2)][1] == (40, 100, 100)
+            assert table.move_to(30.0, 0.0).wait(30.0) == pytest.approx((30.0, 0.0), abs=HALF_STEP)
+
+
+def test_move_time_follows_the_vector_feed_and_the_feed_override():
+    rates, accels = (3600.0, 1800.0), (180.0, 90.0)
+    alone = move_seconds((90.0, 0.0), 1800.0, rates, accels)
+    assert alone == pytest.approx(trapezoid_seconds(90.0, 1800.0, 180.0))
+    combined = move_seconds((90.0, 90.0), 1800.0, rates, accels)  # F is the speed along the diagonal
+    length = math.hypot(90.0, 90.0)
+    assert combined == pytest.approx(trapezoid_seconds(length, 1800.0, 90.0 * math.sqrt(2.0)))
+    assert move_seconds((90.0, 0.0), 1800.0, rates, accels, 40.0) > 2.4 * alone - 1.0
+    assert move_seconds((90.0, 0.0), 7200.0, rates, accels) == pytest.approx(trapezoid_seconds(90.0, 3600.0, 180.0))
 
 
 def test_poll_rate_above_5_hz_is_refused():

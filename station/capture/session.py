@@ -35,6 +35,8 @@ class RecoveryOutcome(Protocol):
 class TurntableAxes(Protocol):
     """What the session needs from a turntable driver (station.turntable.grbl.Turntable)."""
 
+    position_exact: bool  # False once a reset or reboot left the position a best guess
+
     def move_to(self, angle_deg: float, tilt_deg: float) -> MoveStatus: ...
 
     def recover(self) -> RecoveryOutcome: ...
@@ -254,8 +256,8 @@ class ScanSession:
         summary.recoveries += 1
         if not self.turntable.recover().exact:
             log.warning(
-                "turntable lost its position without homing; angles from %s on may be off. "
-                "Enable homing ($22=1) for exact recovery.", frame.file,
+                "turntable lost its position without homing; angles from %s on may be off and are marked "
+                "pose_exact=false in the manifest. Enable homing ($22=1) for exact recovery.", frame.file,
             )
 
     def _store(self, frame: PlannedFrame, data: bytes, entries: dict[str, ManifestEntry]) -> None:
@@ -270,7 +272,8 @@ class ScanSession:
             exposure_s=self.plan.exposure_s,
             iso=self.plan.iso,
             utc=_utc_now(),
-            extra={"elevation_index": frame.elevation_index},
+            extra={"elevation_index": frame.elevation_index}
+            | ({} if self.turntable.position_exact else {"pose_exact": False}),
         )
         order = {f.file: i for i, f in enumerate(self.plan.frames())}
         self.scan.write_manifest(sorted(entries.values(), key=lambda e: order.get(e.file, len(order))))

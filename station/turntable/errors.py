@@ -105,6 +105,14 @@ class TiltLimitError(BadInputError):
     """A tilt target lies outside the configured mechanical limits; nothing was sent."""
 
 
+class SoftLimitError(BadInputError):
+    """A target lies outside the board's soft-limit travel ($20/$130/$131) or the X window; nothing was sent."""
+
+
+class ReferenceMismatchError(DeviceError):
+    """The board's work offset (status `WCO`) disagrees with its stored G54 reference (`$#`)."""
+
+
 class WaitTimeoutError(TimeoutError, StationError):
     """The caller stopped waiting on a status; the device itself has not failed (ophyd's split)."""
 

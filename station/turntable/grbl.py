@@ -2,65 +2,37 @@
 
 The driver knows the wire protocol and nothing else (retries, resume and the manifest belong to the
 scan session). Actions return a MoveStatus that carries the device's exception to whoever waits.
+The position reference is the G54 work offset, set with G10 L20 P1 and never with G92.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import replace
 from typing import Literal, TypeVar
 
-from station.errors import BadInputError, DeviceDisconnectedError, DeviceError, DeviceTimeoutError
+from station.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError
 from station.turntable.action import MoveStatus
-from station.turntable.errors import GrblSettingsError, MoveCancelledError, TiltLimitError, UnexpectedResetError
+from station.turntable.config import TurntableConfig
+from station.turntable.errors import GrblAlarm, MoveCancelledError, TiltLimitError, UnexpectedResetError
 from station.turntable.link import SerialLine
+from station.turntable.planning import Rotation, check_travel, move_seconds, wrapped_target, x_window
 from station.turntable.protocol import FirmwareInfo, GrblProtocol
-from station.turntable.recovery import Recovery, recover
+from station.turntable.recovery import Recovery, TurntableRecovery
+from station.turntable.reference import Reference, read_reference
+from station.turntable.reset import check_settings, check_startup_echoes, hold_until_still, set_modal_state
 from station.turntable.status import MachineStatus
 
+log = logging.getLogger(__name__)
 T = TypeVar("T")
-Rotation = Literal["shortest", "continuous"]
 _AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2, "A": 3}
-
-
-@dataclass
-class TurntableConfig:
-    """What the rig expects of its board, and how long to wait for it."""
-
-    steps_per_deg: tuple[float, float] = (44.444, 44.444)  # $100, $101: a wrong value mis-scales every angle
-    max_rate_deg_min: tuple[float, float] = (3600.0, 1800.0)  # $110, $111
-    accel_deg_s2: tuple[float, float] = (180.0, 90.0)  # $120, $121
-    settings_rel_tol: float = 1e-3
-    feed_deg_min: float = 1800.0
-    tilt_limits_deg: tuple[float, float] = (0.0, 90.0)
-    tilt_axis: Literal["Y", "A"] = "Y"
-    rotation: Rotation = "shortest"
-    baudrate: int = 115200
-    banner_timeout_s: float = 3.0
-    reply_timeout_s: float = 2.0
-    poll_hz: float = 4.0  # status fallback while waiting for motion; GRBL advises 5 Hz at most
-    motion_margin_s: float = 2.0
-    home_timeout_s: float = 120.0
-    reconnect_timeout_s: float = 10.0
-
-    def __post_init__(self) -> None:
-        if not 0 < self.poll_hz <= 5:
-            raise BadInputError(f"TurntableConfig.poll_hz={self.poll_hz} must be in (0, 5]")
-        if self.feed_deg_min <= 0:
-            raise BadInputError(f"TurntableConfig.feed_deg_min={self.feed_deg_min} must be positive")
-        if self.tilt_axis not in ("Y", "A"):
-            raise BadInputError(f"TurntableConfig.tilt_axis={self.tilt_axis!r} must be 'Y' or 'A'")
-
-
-def trapezoid_seconds(distance: float, rate_per_min: float, accel: float) -> float:
-    """Rest-to-rest move time at `rate_per_min` with `accel` (units/s^2): GRBL's block profile."""
-    v = rate_per_min / 60.0
-    if distance * accel < v * v:
-        return 2.0 * math.sqrt(distance / accel)
-    return v / accel + distance / v
+CounterLoss = Literal["none", "at_rest", "mid_move"]
+SUDDEN_HALT_ALARMS = (1, 3)  # hard limit, reset while moving: GRBL says the position is likely lost
 
 
 class Turntable:
@@ -70,61 +42,99 @@ class Turntable:
         self.port = port
         self.config = config
         self.info: FirmwareInfo | None = None
+        self.position_exact = True  # False once a reset caught the table moving (ALARM:3) or a reboot cut a move
         self._axis = _AXIS_INDEX[config.tilt_axis]
         self._io = threading.RLock()  # held by whoever reads replies
         self._proto: GrblProtocol | None = None
+        self._reference: Reference | None = None
         self._wco: tuple[float, ...] | None = None
-        self._known = (0.0, 0.0)  # last confirmed work position (turntable unwrapped, tilt)
-        self._last_seen = (0.0, 0.0)  # freshest position from any status report
+        self._known = (0.0, 0.0)  # last confirmed work position (turntable, tilt)
+        self._last_seen = (0.0, 0.0)  # freshest work position from any status report
+        self._rest_mpos: tuple[float, ...] | None = None  # machine position where the last action left it
+        self._flight: tuple[tuple[float, ...], tuple[float, ...]] | None = None  # machine start, target of a move
+        self._override = 100.0  # feed override (Ov) last reported
         self._status_cond = threading.Condition()
         self._last_status: MachineStatus | None = None
-        self._counter_lost = False  # the board rebooted or the link dropped: its MPos can't be trusted
-        self._counter_lost_mid_move = False
-        self._in_motion = False  # a motion line went out and has not been seen complete
+        self._loss: CounterLoss = "none"
         self._cancelling = threading.Event()
 
     # ---- connection ---------------------------------------------------------------------
     @classmethod
     def connect(cls, port: str, config: TurntableConfig | None = None, *, timeout: float | None = None) -> Turntable:
-        """Open `port` (device path or pyserial URL), reset, identify, check settings, get ready.
+        """Open `port` (device path or pyserial URL), stop any motion, reset, identify, check, get ready.
 
         A board found in Alarm is re-homed when homing is enabled ($22=1), else unlocked with $X (a
-        soft reset keeps GRBL's step counter, so its position stands).
+        soft reset from rest keeps GRBL's step counter, so its position stands).
         """
         config = config or TurntableConfig()
         if timeout is not None:
             config = replace(config, banner_timeout_s=timeout)
         table = cls(port, config)
         with table._io:
-            table._open()
             try:
-                table._establish()
+                table.reconnect()
+                if table.status().state == "Alarm":
+                    if table.homing_enabled:
+                        table.rehome()
+                    else:
+                        table.unlock()
+                table._settle(table.status())
             except BaseException:
                 table.close()  # a refused port must not stay open (a retry or another program needs it)
                 raise
         return table
 
-    def _open(self) -> None:
-        self._proto = GrblProtocol(SerialLine(self.port, self.config.baudrate), self._note_status)
+    def reconnect(self) -> None:
+        """Reopen the port if needed, hold a moving table, reset, identify, set modal state, check the reference.
 
-    def _identify(self) -> MachineStatus:
-        """Reset, banner, `$I`, `$$` check and `$#` offsets; returns the first status report."""
-        proto = self._p
-        flavour, version = proto.handshake(self.config.banner_timeout_s)
-        self.info = proto.identify(flavour, version, self.config.reply_timeout_s)
-        self._check_settings(self.info.settings)
-        self._read_wco()
-        return proto.query_status(self.config.reply_timeout_s)
+        Afterwards the step counter is compared with where the driver last saw it: a board that
+        rebooted (counter restarted at zero) is marked so that `counter_loss` says so.
+        """
+        with self._io:
+            if self._proto is None:
+                self._proto = GrblProtocol(SerialLine(self.port, self.config.baudrate), self._note_status)
+            self._guard(self._establish)
 
     def _establish(self) -> None:
-        proto = self._p
-        status = self._identify()
-        if status.state == "Alarm":
-            if self.homing_enabled:
-                self._home_locked()
-            else:
-                proto.command("$X", self.config.reply_timeout_s)
-        self._known = self._last_seen = self._work(proto.query_status(self.config.reply_timeout_s))
+        proto, cfg = self._p, self.config
+        hold_until_still(proto, proto.probe(min(0.5, cfg.reply_timeout_s)), cfg)
+        shake = proto.handshake(cfg.banner_timeout_s, cfg.banner_retry_s)
+        if set(shake.alarms) & set(SUDDEN_HALT_ALARMS):
+            self._mark_inexact(f"the reset reported {', '.join(f'ALARM:{a}' for a in shake.alarms)}")
+        self.info = proto.identify(shake.flavour, shake.version, cfg.reply_timeout_s)
+        check_settings(self.info.settings, cfg, self._axis, self.port)
+        check_startup_echoes(shake.startup, self.port)
+        if proto.query_status(cfg.reply_timeout_s).state != "Alarm":  # G-code is locked in Alarm: after $X/$H
+            set_modal_state(proto, cfg.reply_timeout_s)
+        self._check_counter(self._read_reference())
+
+    def _read_reference(self) -> MachineStatus:
+        """`$#` offsets, then a status report checked against them; returns that report."""
+        self._reference = read_reference(self._p, self.config.reply_timeout_s)
+        self._wco = self._reference.wco
+        status = self._p.query_status(self.config.reply_timeout_s)
+        self._reference.check(status, self.port)
+        return status
+
+    def _check_counter(self, status: MachineStatus) -> None:
+        """A rebooted board restarts MPos at zero: its counter no longer matches where the table is."""
+        mpos = status.machine_position(self._wco)
+        if mpos is None:
+            return
+        if self._rest_mpos is None:  # first connect: nothing seen before, but a fresh count is telling
+            if all(m == 0.0 for m in mpos) and self._reference and any(abs(g) > 1e-3 for g in self._reference.g54):
+                self._mark_inexact("it reports MPos 0 with a stored G54 reference, as after a power-up: "
+                                   "if the table was moved or the board restarted since, angles are off")
+            return
+        tol = self._tolerances()
+        here = (mpos[0], mpos[self._axis])
+        if self._flight is not None:
+            start, end = self._flight
+            inside = all(min(s, e) - t <= h <= max(s, e) + t for h, s, e, t in zip(here, start, end, tol))
+            if not inside:
+                self._loss = "mid_move"
+        elif not all(abs(h - r) <= t for h, r, t in zip(here, self._rest_mpos, tol)):
+            self._loss = "at_rest"
 
     @property
     def _p(self) -> GrblProtocol:
@@ -135,6 +145,15 @@ class Turntable:
     @property
     def homing_enabled(self) -> bool:
         return bool(self.info and self.info.settings.get(22, 0))
+
+    def settings(self) -> dict[int, float]:
+        """The board's `$$` settings as read at the last connect."""
+        return dict(self.info.settings) if self.info else {}
+
+    @property
+    def reference(self) -> Reference | None:
+        """The stored G54 work offset and G92 offset as read (`$#`) at the last connect."""
+        return self._reference
 
     def close(self) -> None:
         with self._io:
@@ -148,37 +167,18 @@ class Turntable:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _check_settings(self, settings: dict[int, float]) -> None:
-        cfg = self.config
-        expected: dict[int, tuple[float, str]] = {}
-        for j, axis in enumerate((0, self._axis)):
-            expected[100 + axis] = (cfg.steps_per_deg[j], "steps/degree")
-            expected[110 + axis] = (cfg.max_rate_deg_min[j], "degree/min max rate")
-            expected[120 + axis] = (cfg.accel_deg_s2[j], "degree/s^2 acceleration")
-        wrong = []
-        for number, (want, unit) in expected.items():
-            have = settings.get(number)
-            if have is None:
-                wrong.append(f"${number} missing (expected {want:g} {unit})")
-            elif abs(have - want) > cfg.settings_rel_tol * abs(want):
-                wrong.append(f"${number}={have:g} (expected {want:g} {unit})")
-        if wrong:
-            raise GrblSettingsError(f"turntable on {self.port} is configured differently from the rig: " + ", ".join(wrong))
-
-    def _read_wco(self) -> None:
-        info = self._p.command("$#", self.config.reply_timeout_s)
-        offsets = {s[1:].split(":")[0]: s[1:-1].split(":")[1] for s in info if s.count(":") >= 1}
-        try:
-            g54 = [float(v) for v in offsets["G54"].split(",")]
-            g92 = [float(v) for v in offsets["G92"].split(",")]
-        except (KeyError, ValueError) as exc:
-            raise DeviceError(f"turntable on {self.port} sent unreadable $# offsets {info!r}") from exc
-        self._wco = tuple(a + b for a, b in zip(g54, g92))
+    @contextmanager
+    def exclusive(self) -> Iterator[None]:
+        """Hold the line: no action runs until the block ends (recovery works inside one)."""
+        with self._io:
+            yield
 
     # ---- status -----------------------------------------------------------------------------
     def _note_status(self, status: MachineStatus) -> None:
         if status.wco is not None:
             self._wco = status.wco
+        if status.overrides:
+            self._override = float(status.overrides[0])
         work = status.work_position(self._wco)
         if work is not None:
             self._last_seen = (work[0], work[self._axis])
@@ -192,18 +192,35 @@ class Turntable:
             raise DeviceError(f"turntable on {self.port} reported no usable position: {status}")
         return (work[0], work[self._axis])
 
+    def _machine(self, work: tuple[float, float]) -> tuple[float, float]:
+        wco = self._wco or (0.0,) * (self._axis + 1)
+        return (work[0] + wco[0], work[1] + wco[self._axis])
+
+    def _tolerances(self) -> tuple[float, float]:
+        steps = self.info.settings if self.info else {}
+        return tuple(1.5 / steps.get(100 + axis, 1000.0) + 1e-3 for axis in (0, self._axis))  # type: ignore[return-value]
+
     def status(self) -> MachineStatus:
         """A fresh `?` report (a garbled one is refused and asked again once)."""
         with self._io:
             return self._guard(lambda: self._p.query_status(self.config.reply_timeout_s))
 
     def position(self) -> tuple[float, float]:
-        """Work position now: (turntable unwrapped, tilt) degrees; waits for a running action."""
+        """Work position now: (turntable, tilt) degrees; waits for a running action."""
         return self._work(self.status())
+
+    @property
+    def last_seen(self) -> tuple[float, float]:
+        """The freshest work position any status report gave, even one from before a fault."""
+        return self._last_seen
+
+    @property
+    def counter_loss(self) -> CounterLoss:
+        """Whether the board's step counter stopped matching the table: none, lost at rest, or mid-move."""
+        return self._loss
 
     def _guard(self, action: Callable[[], T]) -> T:
         """Run an I/O action; remember when the board's step counter can no longer be trusted."""
-        self._in_motion = False  # the action sets it once a motion line has gone out
         try:
             return action()
         except DeviceDisconnectedError:
@@ -215,10 +232,50 @@ class Turntable:
         except UnexpectedResetError:
             self._lose_counter()
             raise
+        except GrblAlarm as alarm:
+            if alarm.code in SUDDEN_HALT_ALARMS:
+                self._mark_inexact(f"ALARM:{alarm.code} stopped it dead mid-move")
+            raise
 
     def _lose_counter(self) -> None:
-        self._counter_lost = True
-        self._counter_lost_mid_move = self._counter_lost_mid_move or self._in_motion
+        if self._loss != "mid_move":
+            self._loss = "mid_move" if self._flight is not None else "at_rest"
+
+    def _mark_inexact(self, why: str) -> None:
+        self.position_exact = False
+        log.warning("turntable on %s: position is not exact: %s; re-home or re-reference before trusting angles",
+                    self.port, why)
+
+    def reference_to(self, work: tuple[float, float], *, exact: bool) -> tuple[float, float]:
+        """Declare that the table stands at `work` now: G10 L20 P1 stores the G54 offset in EEPROM.
+
+        Used after the step counter was lost; `exact` says whether `work` is known or only the last
+        position seen. The counter is trusted again afterwards.
+        """
+        with self._io:
+            proto, timeout = self._p, self.config.reply_timeout_s
+            proto.command(f"G10 L20 P1 X{work[0]:.4f} {self.config.tilt_axis}{work[1]:.4f}", timeout)
+            status = self._read_reference()
+            here = self._work(status)
+            if not all(abs(h - w) <= t for h, w, t in zip(here, work, self._tolerances())):
+                raise DeviceError(f"turntable on {self.port}: after G10 L20 the work position is {here}, expected {work}")
+            self._settle(status)
+            self._loss = "none"
+            if not exact:
+                self._mark_inexact(f"restored to {work}, the last position seen before the board lost its count")
+            return self._known
+
+    def resync(self) -> tuple[float, float]:
+        """Take the board's own position as where the table stands (its step counter was kept)."""
+        with self._io:
+            self._settle(self._guard(lambda: self._p.query_status(self.config.reply_timeout_s)))
+            return self._known
+
+    def _settle(self, status: MachineStatus) -> None:
+        self._known = self._last_seen = self._work(status)
+        mpos = status.machine_position(self._wco)
+        self._rest_mpos = (mpos[0], mpos[self._axis]) if mpos else None
+        self._flight = None
 
     # ---- actions ----------------------------------------------------------------------------
     def _spawn(self, description: str, work: Callable[[], tuple[float, float]]) -> MoveStatus:
@@ -237,44 +294,49 @@ class Turntable:
         return status
 
     def target_for(self, angle_deg: float, rotation: Rotation | None = None) -> float:
-        """Unwrapped turntable coordinate for `angle_deg` from where the table is now.
+        """Work X for `angle_deg` from where the table is now, kept inside the travel window.
 
-        continuous: always forward (never decreasing); shortest: the least rotation, either way.
+        continuous: forward (never decreasing) but for one unwind at the window's end; shortest: the
+        least rotation either way. Leaving the window wraps by a whole turn: X never counts up forever.
         """
-        if not math.isfinite(angle_deg):
-            raise BadInputError(f"turntable angle {angle_deg!r} is not a finite number")
-        current = self._known[0]
-        mode = rotation or self.config.rotation
-        if mode == "continuous":
-            return current + (angle_deg - current) % 360.0
-        if mode == "shortest":
-            return current + ((angle_deg - current + 180.0) % 360.0 - 180.0)
-        raise BadInputError(f"rotation mode {mode!r} must be 'shortest' or 'continuous'")
+        window = self.config.x_range_deg
+        if self.info is not None:
+            window = x_window(window, self.info.settings, (self._wco or (0.0,))[0])
+        return wrapped_target(angle_deg, self._known[0], rotation or self.config.rotation, window)
 
     def move_to(self, angle_deg: float, tilt_deg: float, rotation: Rotation | None = None) -> MoveStatus:
         """Absolute move (G90 G1) to turntable angle and tilt, both in degrees.
 
-        Bad input raises here; everything the device does is reported through the returned status.
-        The unwrapped target is taken from where the previous action left the table.
+        Bad input (tilt limits, soft limits) raises here; everything the device does is reported
+        through the returned status. The target is taken from where the previous action left the table.
         """
         low, high = self.config.tilt_limits_deg
         if not (math.isfinite(tilt_deg) and low <= tilt_deg <= high):
             raise TiltLimitError(f"tilt {tilt_deg!r} degrees is outside the limits [{low:g}, {high:g}]")
-        self.target_for(angle_deg, rotation)  # validates angle and mode now, not in the worker
+        self._check_travel((self.target_for(angle_deg, rotation), float(tilt_deg)))  # now, not in the worker
 
         def move() -> tuple[float, float]:
-            return self._move_locked((self.target_for(angle_deg, rotation), float(tilt_deg)))
+            target = (self.target_for(angle_deg, rotation), float(tilt_deg))
+            self._check_travel(target)
+            return self._move_locked(target)
 
         return self._spawn(f"move to {angle_deg:g} deg, tilt {tilt_deg:g} deg", move)
 
+    def _check_travel(self, target: tuple[float, float]) -> None:
+        settings = self.info.settings if self.info else {}
+        machine = self._machine(target)
+        check_travel("turntable X", machine[0], settings, 0)
+        check_travel(f"tilt {self.config.tilt_axis}", machine[1], settings, self._axis)
+
     def home(self) -> MoveStatus:
         """Homing cycle ($H); GRBL answers ok only once homing is complete."""
-        return self._spawn("homing", self._home_locked)
+        return self._spawn("homing", self.rehome)
 
     def unlock(self) -> None:
         """Clear an alarm lock without homing ($X)."""
         with self._io:
             self._guard(lambda: self._p.command("$X", self.config.reply_timeout_s))
+            self._guard(lambda: set_modal_state(self._p, self.config.reply_timeout_s))
 
     def feed_hold(self) -> None:
         """Decelerate to a stop (`!`), keeping position; a running move waits through the hold."""
@@ -285,8 +347,8 @@ class Turntable:
     def cancel(self, timeout: float | None = None) -> None:
         """Operator stop of the running move: hold, wait for Hold:0, then soft-reset.
 
-        GRBL keeps its position when reset from a completed hold (no ALARM:3), so the running move
-        ends in MoveCancelledError with the work position restored, distinct from any device fault.
+        GRBL keeps its position when reset from a completed hold (no ALARM:3), and the G54 reference
+        lives in EEPROM, so the running move ends in MoveCancelledError with the position intact.
         Does nothing when no move is running.
         """
         if self._io.acquire(blocking=False):
@@ -327,28 +389,25 @@ class Turntable:
         raise DeviceTimeoutError(f"turntable on {self.port} did not reach {what} in time")
 
     # ---- blocking bodies (called with self._io held) ---------------------------------------
-    def _estimate_s(self, target: tuple[float, float]) -> float:
+    def _estimate_s(self, start: tuple[float, float], target: tuple[float, float]) -> float:
+        """Move time from `start` at the programmed vector feed, the axis limits and the feed override."""
         settings = self.info.settings if self.info else {}
-        seconds = 0.0
-        for j, axis in enumerate((0, self._axis)):
-            rate = min(self.config.feed_deg_min, settings.get(110 + axis, self.config.max_rate_deg_min[j]))
-            accel = settings.get(120 + axis, self.config.accel_deg_s2[j])
-            seconds = max(seconds, trapezoid_seconds(abs(target[j] - self._last_seen[j]), rate, accel))
-        return seconds
+        axes = (0, self._axis)
+        rates = tuple(settings.get(110 + a, self.config.max_rate_deg_min[j]) for j, a in enumerate(axes))
+        accels = tuple(settings.get(120 + a, self.config.accel_deg_s2[j]) for j, a in enumerate(axes))
+        delta = (target[0] - start[0], target[1] - start[1])
+        return move_seconds(delta, self.config.feed_deg_min, rates, accels, max(self._override, 1.0))
 
     def _at(self, status: MachineStatus, target: tuple[float, float]) -> bool:
         work = self._work(status)
-        steps = self.info.settings if self.info else {}
-        tolerance = [1.5 / steps.get(100 + axis, 1000.0) + 1e-6 for axis in (0, self._axis)]
-        return all(abs(w - t) <= tol for w, t, tol in zip(work, target, tolerance))
+        return all(abs(w - t) <= tol for w, t, tol in zip(work, target, self._tolerances()))
 
     def _move_locked(self, target: tuple[float, float]) -> tuple[float, float]:
         proto, cfg = self._p, self.config
         line = f"G90 G1 X{target[0]:.4f} {cfg.tilt_axis}{target[1]:.4f} F{cfg.feed_deg_min:.1f}"
-        budget = self._estimate_s(target) * 1.5 + cfg.motion_margin_s
         proto.drain()  # a board that rebooted while idle must not take this line in its new frame
+        self._flight = (self._machine(self._known), self._machine(target))
         proto.line.write(line.encode("ascii") + b"\n")
-        self._in_motion = True
         if proto.await_reply(line, time.monotonic() + cfg.reply_timeout_s) is None:
             # A dropped `ok`: the line was taken if the table is moving or already there.
             status = proto.query_status(cfg.reply_timeout_s)
@@ -356,48 +415,55 @@ class Turntable:
                 raise DeviceTimeoutError(f"turntable on {self.port} never answered {line!r} and is "
                                          f"{status.state} at {self._work(status)}, not moving to {target}")
         proto.line.write(b"G4 P0\n")
+        allowance = self._estimate_s(self._known, target) * 1.5 + cfg.motion_margin_s
 
         def adjust(status: MachineStatus, deadline: float) -> float:
+            now = time.monotonic()
             if status.state in ("Hold", "Door"):
-                return max(deadline, time.monotonic() + budget)
+                return max(deadline, now + allowance)
+            if status.state == "Run":  # what is left, at the feed override reported now
+                return max(deadline, now + self._estimate_s(self._work(status), target) * 1.5 + cfg.motion_margin_s)
             if status.state == "Idle" and self._at(status, target):
-                return min(deadline, time.monotonic() + cfg.reply_timeout_s)
+                return min(deadline, now + cfg.reply_timeout_s)
             return deadline
 
         try:
-            reply = proto.await_reply("G4 P0", time.monotonic() + budget, poll_s=1.0 / cfg.poll_hz, adjust=adjust)
+            reply = proto.await_reply("G4 P0", time.monotonic() + allowance, poll_s=1.0 / cfg.poll_hz, adjust=adjust)
+            status = proto.query_status(cfg.reply_timeout_s)  # a reset mid-move answers G4 P0, then ALARM:3
         except UnexpectedResetError:
             if not self._cancelling.is_set():
                 raise
             self._cancelling.clear()
             raise MoveCancelledError(f"move to {target} cancelled by the operator; "
-                                     f"table stopped at {self._restore_after_reset()}") from None
-        status = proto.query_status(cfg.reply_timeout_s)
+                                     f"table stopped at {self._after_reset()}") from None
         if not (status.state == "Idle" and self._at(status, target)):
             waited = "no ok to G4 P0" if reply is None else "G4 P0 answered"
-            raise DeviceTimeoutError(f"turntable on {self.port}: {waited} after {budget:.1f} s, table is "
+            raise DeviceTimeoutError(f"turntable on {self.port}: {waited} after {allowance:.1f} s or more, table is "
                                      f"{status.state} at {self._work(status)}, target {target}")
-        self._known = self._work(status)
+        self._settle(status)
         return self._known
 
-    def _restore_after_reset(self) -> tuple[float, float]:
-        """A reset from rest keeps MPos but clears G92: put the old work offset back."""
-        old_wco = self._wco or (0.0,) * (self._axis + 1)
-        mpos = self._p.query_status(self.config.reply_timeout_s).machine_position(self._wco)
-        work = (mpos[0] - old_wco[0], mpos[self._axis] - old_wco[self._axis])
-        self._p.command(f"G92 X{work[0]:.4f} {self.config.tilt_axis}{work[1]:.4f}", self.config.reply_timeout_s)
-        self._read_wco()
-        self._known = self._last_seen = self._work(self._p.query_status(self.config.reply_timeout_s))
+    def _after_reset(self) -> tuple[float, float]:
+        """A reset from Hold:0 keeps MPos and the G54 reference: sync, restore modal state, re-read."""
+        proto, cfg = self._p, self.config
+        proto.line.write(b"\n")
+        proto.await_reply("(empty line)", time.monotonic() + cfg.reply_timeout_s)
+        set_modal_state(self._p, self.config.reply_timeout_s)
+        self._settle(self._read_reference())
         return self._known
 
     def recover(self) -> Recovery:
-        """Bring the table back after a vanished port, a board reset, or an alarm; see `recovery.recover`."""
-        return recover(self)
+        """Bring the table back after a vanished port, a board reset, or an alarm; see `recovery`."""
+        return TurntableRecovery(self).run()
 
-    def _home_locked(self) -> tuple[float, float]:
-        self._p.drain()
-        self._in_motion = True
-        self._p.command("$H", self.config.home_timeout_s)
-        self._read_wco()
-        self._known = self._work(self._p.query_status(self.config.reply_timeout_s))
-        return self._known
+    def rehome(self) -> tuple[float, float]:
+        """Home now ($H), blocking; the G54 reference then stands on the switches again."""
+        with self._io:
+            self._p.drain()
+            self._flight = (self._machine(self._known), self._machine(self._known))
+            self._p.command("$H", self.config.home_timeout_s)  # startup lines run again after homing
+            set_modal_state(self._p, self.config.reply_timeout_s)
+            self._settle(self._read_reference())
+            self._loss = "none"
+            self.position_exact = True
+            return self._known

@@ -24,6 +24,16 @@ _CODE = re.compile(r"^(error|ALARM):(\d+)$")
 
 
 @dataclass(frozen=True)
+class Handshake:
+    """What a reset printed: banner flavour and version, alarms raised, `$N` startup lines run."""
+
+    flavour: str
+    version: str
+    alarms: tuple[int, ...]  # ALARM:3 here: the reset caught the table moving, its position is lost
+    startup: tuple[str, ...]  # e.g. "G20:ok": each line the firmware ran and its own status
+
+
+@dataclass(frozen=True)
 class FirmwareInfo:
     """Who answered: banner flavour and version, `$I` build info, `$$` settings."""
 
@@ -32,6 +42,7 @@ class FirmwareInfo:
     build: str  # [VER:...] text
     options: str  # [OPT:...] text
     settings: dict[int, float]
+    startup_lines: tuple[str, ...] = ()  # `$N` lines stored in EEPROM, run after every reset
 
 
 class GrblProtocol:
@@ -129,42 +140,104 @@ class GrblProtocol:
                     break
         raise GarbledStatusError(f"turntable on {self.port} sent two garbled status reports in a row, last {garbled!r}")
 
-    def handshake(self, timeout_s: float) -> tuple[str, str]:
-        """Soft-reset (0x18) and wait for the banner; returns (flavour, version)."""
+    def probe(self, timeout_s: float) -> MachineStatus | None:
+        """Ask `?` before any reset: a table still moving (a killed driver, a lost reply) must be held first."""
+        self.line.discard_input()
+        self.line.write(b"?")
+        deadline = time.monotonic() + timeout_s
+        while (text := self.line.read_line(deadline)) is not None:
+            if text.strip().startswith("<"):
+                try:
+                    return parse_status(text)
+                except GarbledStatusError:
+                    return None
+        return None
+
+    def handshake(self, timeout_s: float, retry_s: float = 1.0) -> Handshake:
+        """Soft-reset (0x18) until a banner comes, then sync with an empty line.
+
+        A board that has just powered up ignores input for about a second and prints its own banner
+        late, so the reset is repeated every `retry_s`. Each queued reset flushes GRBL's receive
+        buffer, so the sync line goes out only once banners have stopped for a while, and again if
+        another banner follows it; its `ok` then comes after every banner, `ALARM:3` and
+        `>startup line:ok` echo the resets caused.
+        """
         self.line.discard_input()
         self.line.heard.clear()
-        self.line.write(b"\x18")
         deadline = time.monotonic() + timeout_s
-        while True:
-            text = self.line.read_line(deadline)
-            if text is None:
+        banner: re.Match[str] | None = None
+        alarms: list[int] = []
+        startup: list[str] = []
+
+        def note(text: str) -> bool:
+            """Record one line; True if it was a banner."""
+            nonlocal banner
+            text = text.strip()
+            code = _CODE.match(text)
+            if code and code.group(1) == "ALARM":
+                alarms.append(int(code.group(2)))  # a reset mid-move: ALARM:3 comes before the banner
+            elif text.startswith(">"):
+                startup.append(text[1:])  # `>G20:ok`: a $N startup line the firmware ran after the reset
+            elif (match := BANNER.match(text)) is not None:
+                banner = match
+                startup.clear()
+                return True
+            return False
+
+        while banner is None:
+            self.line.write(b"\x18")
+            retry = min(deadline, time.monotonic() + retry_s)
+            while banner is None and (text := self.line.read_line(retry)) is not None:
+                note(text)
+            if banner is None and time.monotonic() >= deadline:
                 heard = bytes(self.line.heard).decode("ascii", errors="replace").strip()
                 if heard:
                     raise NotGrblError(self.port, heard[:80])
                 raise DeviceTimeoutError(f"no answer from {self.port} within {timeout_s:g} s of a reset; "
                                          "is a GRBL turntable connected and powered?")
-            match = BANNER.match(text.strip())
-            if match:
-                return match.group(1), match.group(2)
+        quiet_s = retry_s / 2.0
+        sync_deadline = max(deadline, time.monotonic() + 2.0 * retry_s)
+        while time.monotonic() < sync_deadline:
+            while (text := self.line.read_line(time.monotonic() + quiet_s)) is not None:
+                note(text)  # later banners, their echoes, a stray `ok` of an earlier sync: all before ours
+            self.line.write(b"\n")
+            while (text := self.line.read_line(sync_deadline)) is not None:
+                code = _CODE.match(text.strip())
+                if text.strip() == "ok":
+                    return Handshake(banner.group(1), banner.group(2), tuple(alarms), tuple(startup))
+                if code and code.group(1) == "error":
+                    raise GrblError(int(code.group(2)), "(empty line)", self.port)
+                if note(text):
+                    break  # one more reset came after the sync line and may have flushed it
+        raise DeviceTimeoutError(f"turntable on {self.port} sent its banner but did not answer an empty line")
 
     def identify(self, flavour: str, version: str, timeout_s: float) -> FirmwareInfo:
-        """`$I` build info and `$$` settings."""
+        """`$I` build info, `$$` settings and `$N` startup lines (all refused with error:8 while moving)."""
         info = self.command("$I", timeout_s)
         build = next((s[5:-1] for s in info if s.startswith("[VER:")), "")
         options = next((s[5:-1] for s in info if s.startswith("[OPT:")), "")
         settings: dict[int, float] = {}
-        self.line.write(b"$$\n")
+        for text in self.listing("$$", timeout_s):
+            match = re.match(r"^\$(\d+)=([-+0-9.]+)", text)
+            if match:
+                settings[int(match.group(1))] = float(match.group(2))
+        startup = (line.split("=", 1)[1] for line in self.listing("$N", timeout_s) if line.startswith("$N") and "=" in line)
+        return FirmwareInfo(flavour, version, build, options, settings, tuple(s for s in startup if s))
+
+    def listing(self, command: str, timeout_s: float) -> list[str]:
+        """Lines of a `$` listing (`$N`, `$$`) that are not status, info or replies."""
+        self.line.write(command.encode("ascii") + b"\n")
         deadline = time.monotonic() + timeout_s
+        lines: list[str] = []
         while True:
             text = self.line.read_line(deadline)
             if text is None:
-                raise DeviceTimeoutError(f"turntable on {self.port} did not finish listing $$ within {timeout_s:g} s")
-            match = re.match(r"^\$(\d+)=([-+0-9.]+)", text.strip())
-            if match:
-                settings[int(match.group(1))] = float(match.group(2))
+                raise DeviceTimeoutError(f"turntable on {self.port} did not finish {command!r} within {timeout_s:g} s")
+            if text.strip().startswith("$"):
+                lines.append(text.strip())
                 continue
             kind, value = self.classify(text)
             if kind == "ok":
-                return FirmwareInfo(flavour, version, build, options, settings)
+                return lines
             if kind == "error":
-                raise GrblError(int(value), "$$", self.port)
+                raise GrblError(int(value), command, self.port)
