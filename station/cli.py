@@ -20,7 +20,8 @@ from station.cli_support import (
     parse_size,
     progress_reporter,
 )
-from station.errors import BadInputError
+from station.errors import BadInputError, GateFailedError
+from station.pipeline import run_stage
 
 DEMO_SENSOR = (640, 480)  # simulated sensor size for `station demo`: masks are cut at this size ...
 DEMO_TRAINING_WIDTH = 320  # ... and averaged down to the training images' (a camera finer than training)
@@ -87,10 +88,7 @@ def process_command(
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Develop the raws, cut the masks and pose the images (writes images/, masks/, poses/)."""
-    from station.process.develop_stage import ProcessSettings
-    from station.process.stage import process_scan
-
-    result = process_scan(scan_dir, ProcessSettings(training_width=training_width))
+    result = run_stage(scan_dir, "process", _process_params(training_width))
     emit(result, as_json, lambda r: err_console.print(
         f"process {scan_dir}: {r['develop']['usable_shots']} images, posed by {r['poses']['method']} "
         f"({len(r['poses']['registered'])} registered), flags: {', '.join(r['flags']) or 'none'}"
@@ -116,14 +114,18 @@ def import_command(
     emit(asdict(report), as_json, lambda r: err_console.print(f"imported {src} into {out}"))
 
 
-def _train_with_progress(scan_dir: Path, method: str, preset: str):
-    from station.ngs.pipeline import train_scan
-    from station.ngs.presets import make_config
+def _process_params(training_width: int | None) -> dict:
+    return {} if training_width is None else {"training_width": training_width}
 
-    total = make_config(method, preset).steps
+
+def _export_params(stl: bool = False, reference: Path | None = None) -> dict:
+    """Only what differs from the defaults, so the key matches the batch's for a plain export."""
+    return {**({"stl": True} if stl else {}), **({"reference_mesh": str(reference)} if reference else {})}
+
+
+def _train_with_progress(scan_dir: Path, method: str, preset: str, skip_done: bool = False):
     with progress_reporter("train") as progress:
-        return train_scan(scan_dir, method=method, preset=preset,
-                          progress=lambda step, terms: progress(step, total, f"loss {terms['loss']:.4f}"))
+        return run_stage(scan_dir, "train", {"method": method, "preset": preset}, progress, skip_done)
 
 
 @app.command()
@@ -134,7 +136,7 @@ def train(
     preset: str = typer.Option("fast", "--preset", help="fast or paper."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
-    """Train the splat model (resumes from model/checkpoint.pt after an interruption)."""
+    """Train the splat model (an interrupted run resumes from its checkpoint, if the posed views are unchanged)."""
     from dataclasses import asdict
 
     report = _train_with_progress(scan_dir, method, preset)
@@ -167,37 +169,29 @@ def export_command(
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Splats, watertight mesh, metrics, the SOS gate and the report; exit 1 if the gate fails."""
-    from station.export.stage import ExportConfig, export_scan
-
-    report = export_scan(scan_dir, ExportConfig(stl=stl, reference_mesh=reference))
-    _print_verdict(report, as_json)
-    if not report.passed:
-        raise typer.Exit(1)
+    _verdict(run_stage(scan_dir, "export", _export_params(stl, reference)), as_json)
 
 
-def _print_verdict(report, as_json: bool) -> None:
+def _verdict(report, as_json: bool) -> None:
+    """Print the export's verdict; a failed gate is exit 1 (GateFailedError), after the verdict is out."""
     result = {"scan": str(report.scan_root), "pass": report.passed, "gate": report.gate.to_json(),
               "files": {k: str(v) for k, v in report.files.items()}, "seconds": round(report.seconds, 1)}
     emit(result, as_json, lambda r: err_console.print(report.gate.summary()))
+    if not report.passed:
+        raise GateFailedError(f"{report.scan_root}: the asset failed the quality gate; see asset/QUARANTINED.txt")
 
 
 def run_pipeline(scan_dir: Path, method: str, preset: str, reference: Path | None = None,
                  training_width: int | None = None):
-    """process -> train -> export, skipping stages already marked done (resumable)."""
-    from station.export.stage import ExportConfig, export_scan
-    from station.process.develop_stage import ProcessSettings
-    from station.process.stage import process_scan
-    from station.scanfolder import ScanFolder
-
-    scan = ScanFolder(scan_dir)
-    if not scan.is_done("process"):
-        err_console.print("process: develop, masks, poses ...")
-        process_scan(scan_dir, ProcessSettings(training_width=training_width))
-    if not scan.is_done("train"):
-        err_console.print(f"train: {method}, {preset} preset ...")
-        _train_with_progress(scan_dir, method, preset)
+    """process -> train -> export; process and train are skipped when finished under the same key."""
+    err_console.print("process: develop, masks, poses ...")
+    if run_stage(scan_dir, "process", _process_params(training_width), skip_done=True) is None:
+        err_console.print("process: finished earlier; its outputs verify")
+    err_console.print(f"train: {method}, {preset} preset ...")
+    if _train_with_progress(scan_dir, method, preset, skip_done=True) is None:
+        err_console.print("train: finished earlier; its outputs verify")
     err_console.print("export: splats, mesh, gate, report ...")
-    return export_scan(scan_dir, ExportConfig(reference_mesh=reference))
+    return run_stage(scan_dir, "export", _export_params(reference=reference))
 
 
 @app.command()
@@ -210,10 +204,7 @@ def run(
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """process + train + export; stages already done are skipped. Exit 1 if the gate fails."""
-    report = run_pipeline(scan_dir, method, preset, training_width=training_width)
-    _print_verdict(report, as_json)
-    if not report.passed:
-        raise typer.Exit(1)
+    _verdict(run_pipeline(scan_dir, method, preset, training_width=training_width), as_json)
 
 
 @app.command()
@@ -233,9 +224,7 @@ def demo(
     report = run_pipeline(scan_dir, "ngs", "fast", reference=scan_dir / "sim_truth" / "mesh.ply",
                           training_width=DEMO_TRAINING_WIDTH)
     err_console.print(f"demo finished in {time.monotonic() - started:.0f} s; asset in {scan_dir / 'asset'}")
-    _print_verdict(report, as_json)
-    if not report.passed:
-        raise typer.Exit(1)
+    _verdict(report, as_json)
 
 
 app.command("serve")(serve)
