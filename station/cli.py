@@ -123,9 +123,9 @@ def _export_params(stl: bool = False, reference: Path | None = None) -> dict:
     return {**({"stl": True} if stl else {}), **({"reference_mesh": str(reference)} if reference else {})}
 
 
-def _train_with_progress(scan_dir: Path, method: str, preset: str, skip_done: bool = False):
+def _train_with_progress(scan_dir: Path, method: str, preset: str):
     with progress_reporter("train") as progress:
-        return run_stage(scan_dir, "train", {"method": method, "preset": preset}, progress, skip_done)
+        return run_stage(scan_dir, "train", {"method": method, "preset": preset}, progress)
 
 
 @app.command()
@@ -183,15 +183,13 @@ def _verdict(report, as_json: bool) -> None:
 
 def run_pipeline(scan_dir: Path, method: str, preset: str, reference: Path | None = None,
                  training_width: int | None = None):
-    """process -> train -> export; process and train are skipped when finished under the same key."""
-    err_console.print("process: develop, masks, poses ...")
-    if run_stage(scan_dir, "process", _process_params(training_width), skip_done=True) is None:
-        err_console.print("process: finished earlier; its outputs verify")
-    err_console.print(f"train: {method}, {preset} preset ...")
-    if _train_with_progress(scan_dir, method, preset, skip_done=True) is None:
-        err_console.print("train: finished earlier; its outputs verify")
-    err_console.print("export: splats, mesh, gate, report ...")
-    return run_stage(scan_dir, "export", _export_params(reference=reference))
+    """process -> train -> export on the stage table; process and train are skipped when finished under the same key."""
+    from station.pipeline import run_pipeline as walk
+
+    params = {"process": _process_params(training_width), "train": {"method": method, "preset": preset},
+              "export": _export_params(reference=reference)}
+    with progress_reporter("run") as progress:
+        return walk(scan_dir, params, progress, say=err_console.print)
 
 
 @app.command()

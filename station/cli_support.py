@@ -49,7 +49,9 @@ def exits_on_station_errors(command: Callable) -> Callable:
                 err_console.print(f"[bold red]error:[/] {known}", highlight=False)
                 raise typer.Exit(known.exit_code) from exc
             log.debug("unexpected error", exc_info=exc)
-            err_console.print(f"[bold red]error:[/] unexpected {type(exc).__name__}: {exc} "
+            first = (str(exc).strip().splitlines() or [""])[0]
+            first = first if len(first) <= 160 else first[:157] + "..."
+            err_console.print(f"[bold red]error:[/] unexpected {type(exc).__name__}: {first} "
                               "(a fault in station; run again with --verbose for the traceback)", highlight=False)
             raise typer.Exit(INTERNAL_EXIT_CODE) from exc
 

@@ -234,8 +234,15 @@ def perform(scan_root: Path | str, name: str, params: dict[str, Any],
             path = scan.root / relative
             if _inside_without_links(scan, path) and path.is_file():
                 path.unlink()
-    staged = scan.staged(name, stage.folders, keep=bool(stage.scratch))
-    result, summary = stage.run(scan, staged, params, progress)
+    keep = bool(stage.scratch)  # a stage with working state may resume from its fresh folders
+    staged = scan.staged(name, stage.folders, keep=keep)
+    try:
+        result, summary = stage.run(scan, staged, params, progress)
+    except BaseException:
+        if not keep:
+            for folder in stage.folders:
+                remove_tree(scan.staging_path(folder))
+        raise
     scan.commit(staged, name)
     return result, summary
 
@@ -254,6 +261,20 @@ def run_stage(scan_root: Path | str, name: str, params: dict[str, Any], progress
     write_started(scan, name, key)
     result, summary = perform(scan.root, name, params, progress)
     write_done(scan, name, key, output_digest(scan, stage), summary)
+    return result
+
+
+def run_pipeline(scan_root: Path | str, params: dict[str, dict[str, Any]], progress: Progress | None = None,
+                 say: Callable[[str], None] = lambda text: None) -> Any:
+    """Walk the table on one scan: a stage finished under the same key is skipped, the last (export,
+    whose verdict the caller prints) always runs. Returns the last stage's result."""
+    result = None
+    for stage in STAGES:
+        say(f"{stage.name} ...")
+        last = stage is STAGES[-1]
+        result = run_stage(scan_root, stage.name, params.get(stage.name, {}), progress, skip_done=not last)
+        if result is None:
+            say(f"{stage.name}: finished earlier; its outputs verify")
     return result
 
 
