@@ -161,7 +161,7 @@ def scan_stage_key(scan: ScanFolder, stage: StageSpec, params: dict[str, Any], u
 
 # Records --------------------------------------------------------------------------------------
 def record_path(scan: ScanFolder, stage: StageName) -> Path:
-    return scan.stages_dir / f"{stage}.key.json"
+    return scan.owned_folder("stages") / f"{stage}.key.json"
 
 
 def read_record(scan: ScanFolder, stage: StageName) -> dict[str, Any] | None:
@@ -224,11 +224,18 @@ def sweep_temp_files(scan: ScanFolder) -> list[str]:
 
 
 # Running ----------------------------------------------------------------------------------------
+def recover(scan: ScanFolder) -> None:
+    """Finish every swap a crash cut short, so no stage reads (or hashes) a half-swapped folder."""
+    for stage in STAGES:
+        scan.recover(stage.name, stage.folders)
+
+
 def perform(scan_root: Path | str, name: str, params: dict[str, Any],
             progress: Progress | None = None) -> tuple[Any, dict[str, Any]]:
     """Run one stage into fresh folders and swap them in: the scan keeps its old complete result or
     gets the whole new one. The caller keeps the record (the batch runner, or `run_stage`)."""
     scan, stage = ScanFolder(scan_root), spec(name)
+    recover(scan)
     if name == "export":  # a failed export must never sit under an earlier pass
         for relative in VERDICT:
             path = scan.root / relative
@@ -252,6 +259,7 @@ def run_stage(scan_root: Path | str, name: str, params: dict[str, Any], progress
     """One stage as the CLI runs it, with the batch's records: skipped (None) when `skip_done` and it
     finished under the same key; resumed only from partial work of that very key."""
     scan, stage = ScanFolder(scan_root), spec(name)
+    recover(scan)
     upstream = {read: output_digest(scan, spec(read)) for read in stage.reads}
     key = scan_stage_key(scan, stage, params, upstream)
     if skip_done and finished_record(scan, stage, key) is not None:

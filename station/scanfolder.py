@@ -235,6 +235,7 @@ class ScanFolder:
 
     def recover(self, stage: str, folders: Iterable[str]) -> None:
         """Finish a swap a crash interrupted, and drop the old folders a finished swap left behind."""
+        self.owned_folder("stages")
         journal = self._journal(stage)
         if journal.is_file():
             names = self.read_json(journal).get("folders", [])
@@ -298,7 +299,7 @@ class ScanFolder:
         if self._staging:
             self._held[stage] = info
         else:
-            atomic_write_json(self.stages_dir / f"{stage}.json", info)
+            atomic_write_json(self.owned_folder("stages") / f"{stage}.json", info)
 
     def stage_info(self, stage: str) -> dict[str, Any] | None:
         path = self.stages_dir / f"{stage}.json"
@@ -308,4 +309,4 @@ class ScanFolder:
         return (self.stages_dir / f"{stage}.json").exists()
 
     def clear_done(self, stage: str) -> None:
-        (self.stages_dir / f"{stage}.json").unlink(missing_ok=True)
+        (self.owned_folder("stages") / f"{stage}.json").unlink(missing_ok=True)

@@ -248,3 +248,16 @@ def test_a_quarantined_export_is_exit_1_after_the_verdict_and_swapped_in_whole(t
     assert all(Path(path).parent == scan.asset_dir and Path(path).is_file() for path in verdict["files"].values())
     assert not (scan.asset_dir / "stale.txt").exists()  # the new asset/ replaced the old one whole
     assert stage_done(scan, "export") and json.loads((scan.asset_dir / "gate.json").read_text())["pass"] == verdict["pass"]
+
+
+def test_records_are_never_written_or_removed_through_a_linked_stages_folder(trained, tmp_path):
+    scan = copy_of(trained, tmp_path)
+    outside = tmp_path / "outside"
+    shutil.move(scan.stages_dir, outside)
+    scan.stages_dir.symlink_to(outside)
+    before = sorted(p.name for p in outside.iterdir())
+    for attempt in (lambda: clean_stage(scan, spec("train")), lambda: write_started(scan, "train", "k"),
+                    lambda: scan.mark_done("train", {}), lambda: run_stage(scan.root, "train", TINY)):
+        with pytest.raises(ScanFolderError, match="symbolic link"):
+            attempt()
+    assert sorted(p.name for p in outside.iterdir()) == before
