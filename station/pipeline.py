@@ -226,6 +226,8 @@ def sweep_temp_files(scan: ScanFolder) -> list[str]:
 # Running ----------------------------------------------------------------------------------------
 def recover(scan: ScanFolder) -> None:
     """Finish every swap a crash cut short, so no stage reads (or hashes) a half-swapped folder."""
+    if not scan.root.is_dir():
+        raise ScanFolderError(f"{scan.root}: scan folder not found")
     for stage in STAGES:
         scan.recover(stage.name, stage.folders)
 
@@ -291,7 +293,10 @@ def stage_done(scan: ScanFolder, name: str) -> bool:
     outputs are all present (the runner and the CLI also re-hash them against the key)."""
     if name == "capture":
         return scan.is_done("capture")
-    record = read_record(scan, name)
+    try:
+        record = read_record(scan, name)
+    except ScanFolderError:  # a linked stages/ folder: nothing in it counts
+        return False
     outputs = record.get("outputs") if record and record.get("state") == "done" else None
     return isinstance(outputs, dict) and bool(outputs) and all(_present(scan, path) for path in outputs)
 

@@ -261,3 +261,9 @@ def test_records_are_never_written_or_removed_through_a_linked_stages_folder(tra
         with pytest.raises(ScanFolderError, match="symbolic link"):
             attempt()
     assert sorted(p.name for p in outside.iterdir()) == before
+
+
+def test_a_missing_scan_folder_is_named_and_not_created(tmp_path):
+    result = CliRunner().invoke(app, ["train", str(tmp_path / "nowhere")])
+    assert result.exit_code == 2 and "scan folder not found" in result.output
+    assert not (tmp_path / "nowhere").exists()

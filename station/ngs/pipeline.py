@@ -1,6 +1,7 @@
 """Train a scan folder end to end: pick the preset, load the posed views, train, write model/.
 
-The CLI's `station train` calls `train_scan`; everything it writes goes through the atomic writers.
+`station/pipeline.py` calls `train_scan` with the model folder staged; everything it writes goes through
+the atomic writers.
 """
 
 from __future__ import annotations
