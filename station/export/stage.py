@@ -1,8 +1,8 @@
 """`station export SCAN`: a trained scan folder's model/ becomes its asset/ folder.
 
 Order matters for an unattended run: the old verdict goes first, then every asset file is written
-(atomically) before the gate judges it, so a quarantined asset can still be inspected, and the verdict files (gate.json,
-QUARANTINED.txt, report.html) come last. Re-running redoes every step and overwrites; a
+(atomically) before the gate judges it, so a quarantined asset can still be inspected, and the
+verdict files (gate.json, QUARANTINED.txt, report.html) come last. Re-running redoes every step and overwrites; a
 quarantine marker left from an earlier run is removed only when the new verdict passes.
 """
 
