@@ -2,8 +2,9 @@
 
 Order matters for an unattended run: the old verdict goes first, then every asset file is written
 (atomically) before the gate judges it, so a quarantined asset can still be inspected, and the
-verdict files (gate.json, QUARANTINED.txt, report.html) come last. Re-running redoes every step and overwrites; a
-quarantine marker left from an earlier run is removed only when the new verdict passes.
+verdict files (gate.json, QUARANTINED.txt, report.html) come last. Re-running redoes every step
+and overwrites; a quarantine marker left from an earlier run is removed only when the new verdict
+passes.
 """
 
 from __future__ import annotations
