@@ -21,7 +21,8 @@ from station.cli_support import (
     parse_size,
     progress_reporter,
 )
-from station.errors import BadInputError
+from station.errors import BadInputError, GateFailedError
+from station.pipeline import run_stage
 
 DEMO_SENSOR = (640, 480)  # simulated sensor size for `station demo`: masks are cut at this size ...
 DEMO_TRAINING_WIDTH = 320  # ... and averaged down to the training images' (a camera finer than training)
@@ -93,10 +94,8 @@ def process_command(
 ) -> None:
     """Develop the raws, cut the masks and pose the images (writes images/, masks/, poses/)."""
     from station.config import load_config
-    from station.process.develop_stage import ProcessSettings
-    from station.process.stage import process_scan
 
-    result = process_scan(scan_dir, ProcessSettings(training_width=training_width), rig_model=load_config(config).rig_model_path())
+    result = run_stage(scan_dir, "process", _process_params(training_width, load_config(config).rig_model_path()))
     emit(result, as_json, lambda r: err_console.print(
         f"process {scan_dir}: {r['develop']['usable_shots']} images, posed by {r['poses']['method']} "
         f"({len(r['poses']['registered'])} registered), flags: {', '.join(r['flags']) or 'none'}"
@@ -122,14 +121,20 @@ def import_command(
     emit(asdict(report), as_json, lambda r: err_console.print(f"imported {src} into {out}"))
 
 
-def _train_with_progress(scan_dir: Path, method: str, preset: str):
-    from station.ngs.pipeline import train_scan
-    from station.ngs.presets import make_config
+def _process_params(training_width: int | None, rig_model: Path | None = None) -> dict:
+    """Only what differs from the defaults, so the key matches the batch's for a plain process."""
+    return {**({"training_width": training_width} if training_width is not None else {}),
+            **({"rig_model": str(rig_model)} if rig_model is not None else {})}
 
-    total = make_config(method, preset).steps
+
+def _export_params(stl: bool = False, reference: Path | None = None) -> dict:
+    """Only what differs from the defaults, so the key matches the batch's for a plain export."""
+    return {**({"stl": True} if stl else {}), **({"reference_mesh": str(reference)} if reference else {})}
+
+
+def _train_with_progress(scan_dir: Path, method: str, preset: str):
     with progress_reporter("train") as progress:
-        return train_scan(scan_dir, method=method, preset=preset,
-                          progress=lambda step, terms: progress(step, total, f"loss {terms['loss']:.4f}"))
+        return run_stage(scan_dir, "train", {"method": method, "preset": preset}, progress)
 
 
 @app.command()
@@ -140,7 +145,7 @@ def train(
     preset: str = typer.Option("fast", "--preset", help="fast or paper."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
-    """Train the splat model (resumes from model/checkpoint.pt after an interruption)."""
+    """Train the splat model (an interrupted run resumes from its checkpoint, if the posed views are unchanged)."""
     from dataclasses import asdict
 
     report = _train_with_progress(scan_dir, method, preset)
@@ -173,37 +178,27 @@ def export_command(
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Splats, watertight mesh, metrics, the SOS gate and the report; exit 1 if the gate fails."""
-    from station.export.stage import ExportConfig, export_scan
-
-    report = export_scan(scan_dir, ExportConfig(stl=stl, reference_mesh=reference))
-    _print_verdict(report, as_json)
-    if not report.passed:
-        raise typer.Exit(1)
+    _verdict(run_stage(scan_dir, "export", _export_params(stl, reference)), as_json)
 
 
-def _print_verdict(report, as_json: bool) -> None:
+def _verdict(report, as_json: bool) -> None:
+    """Print the export's verdict; a failed gate is exit 1 (GateFailedError), after the verdict is out."""
     result = {"scan": str(report.scan_root), "pass": report.passed, "gate": report.gate.to_json(),
               "files": {k: str(v) for k, v in report.files.items()}, "seconds": round(report.seconds, 1)}
     emit(result, as_json, lambda r: err_console.print(report.gate.summary()))
+    if not report.passed:
+        raise GateFailedError(f"{report.scan_root}: the asset failed the quality gate; see asset/QUARANTINED.txt")
 
 
 def run_pipeline(scan_dir: Path, method: str, preset: str, reference: Path | None = None,
-                 training_width: int | None = None):
-    """process -> train -> export, skipping stages already marked done (resumable)."""
-    from station.export.stage import ExportConfig, export_scan
-    from station.process.develop_stage import ProcessSettings
-    from station.process.stage import process_scan
-    from station.scanfolder import ScanFolder
+                 training_width: int | None = None, rig_model: Path | None = None):
+    """process -> train -> export on the stage table; process and train are skipped when finished under the same key."""
+    from station.pipeline import run_pipeline as walk
 
-    scan = ScanFolder(scan_dir)
-    if not scan.is_done("process"):
-        err_console.print("process: develop, masks, poses ...")
-        process_scan(scan_dir, ProcessSettings(training_width=training_width))
-    if not scan.is_done("train"):
-        err_console.print(f"train: {method}, {preset} preset ...")
-        _train_with_progress(scan_dir, method, preset)
-    err_console.print("export: splats, mesh, gate, report ...")
-    return export_scan(scan_dir, ExportConfig(reference_mesh=reference))
+    params = {"process": _process_params(training_width, rig_model), "train": {"method": method, "preset": preset},
+              "export": _export_params(reference=reference)}
+    with progress_reporter("run") as progress:
+        return walk(scan_dir, params, progress, say=err_console.print)
 
 
 @app.command()
@@ -213,13 +208,14 @@ def run(
     method: str = typer.Option("ngs", "--method"),
     preset: str = typer.Option("fast", "--preset"),
     training_width: Optional[int] = typer.Option(None, "--training-width", help=TRAINING_WIDTH_HELP),
+    config: Optional[Path] = typer.Option(None, "--config", help="station.toml whose rig_model poses the scan."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """process + train + export; stages already done are skipped. Exit 1 if the gate fails."""
-    report = run_pipeline(scan_dir, method, preset, training_width=training_width)
-    _print_verdict(report, as_json)
-    if not report.passed:
-        raise typer.Exit(1)
+    from station.config import load_config
+
+    rig_model = load_config(config).rig_model_path()
+    _verdict(run_pipeline(scan_dir, method, preset, training_width=training_width, rig_model=rig_model), as_json)
 
 
 @app.command()
@@ -239,9 +235,7 @@ def demo(
     report = run_pipeline(scan_dir, "ngs", "fast", reference=scan_dir / "sim_truth" / "mesh.ply",
                           training_width=DEMO_TRAINING_WIDTH)
     err_console.print(f"demo finished in {time.monotonic() - started:.0f} s; asset in {scan_dir / 'asset'}")
-    _print_verdict(report, as_json)
-    if not report.passed:
-        raise typer.Exit(1)
+    _verdict(report, as_json)
 
 
 app.command("serve")(serve)

@@ -13,7 +13,7 @@ import typer
 
 from station.batch.store import Job, JobStore, StoreConfig
 from station.cli_support import TRAINING_WIDTH_HELP, configure_logging, emit, err_console, exits_on_station_errors
-from station.errors import BadInputError
+from station.errors import BadInputError, GateFailedError
 
 batch_app = typer.Typer(add_completion=False, no_args_is_help=True,
                         help="Overnight queue: add scans, run them unattended, read the morning summary.")
@@ -138,7 +138,7 @@ def run(
 
     emit({**report.to_json(), "summary_html": str(html_path)}, as_json, human)
     if any(row.state == "parked" or (row.state == "done" and row.verdict != "pass") for row in report.rows):
-        raise typer.Exit(1)
+        raise GateFailedError(f"a scan was parked or quarantined; see {html_path}")
 
 
 @batch_app.command()

@@ -7,7 +7,6 @@ Thin: parse, build the app with `make_dashboard`, run uvicorn. Scans go through 
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
@@ -80,7 +79,10 @@ def make_dashboard(
 
 @exits_on_station_errors
 def serve(
-    host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on; anything but loopback needs STATION_TOKEN."),
+    host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on; anything but loopback needs a token."),
+    token: Optional[str] = typer.Option(None, "--token", envvar="STATION_TOKEN", show_envvar=True,
+                                        help="Shared secret the dashboard asks for (needed beyond loopback); "
+                                             "prefer the STATION_TOKEN variable, a command line is visible to ps."),
     port: int = typer.Option(8000, "--port", help="HTTP port of the dashboard."),
     sim: bool = typer.Option(False, "--sim", help="Scan on the simulated rig."),
     port_device: Optional[str] = typer.Option(None, "--device", help="Turntable serial device or pyserial URL."),
@@ -96,12 +98,11 @@ def serve(
     """The operator's dashboard: rig state, scan buttons with a live preview, the queue's verdicts and reports."""
     import uvicorn
 
-
-    token = os.environ.get("STATION_TOKEN") or None
+    token = token or None
     app = make_dashboard(
         host=host, sim=sim, device=port_device, camera=camera, queue=queue, out_dir=out_dir, size=parse_size(size),
         time_scale=time_scale, elevations=elevations, azimuths=azimuths, token=token,
     )
     shown = f"[{host}]" if ":" in host else host
-    err_console.print(f"dashboard on http://{shown}:{port}/" + ("#token=... (the STATION_TOKEN value)" if token else ""))
+    err_console.print(f"dashboard on http://{shown}:{port}/" + ("#token=... (the --token value)" if token else ""))
     uvicorn.run(app, host=host, port=port, ws="none", access_log=False, log_level="info")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import json
 import logging
@@ -9,27 +10,50 @@ import sys
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
+import click
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from station.errors import BadInputError, StationError
+from station.errors import INTERNAL_EXIT_CODE, BadInputError, DiskFullError, StationError
 
+log = logging.getLogger("station")
 err_console = Console(stderr=True)
 TRAINING_WIDTH_HELP = ("Width of the training images and masks, area-averaged from the masks cut on the developed raws; "
                        "default: as developed.")
 
 
+def as_station_error(exc: Exception) -> StationError | None:
+    """The typed error an exception stands for: itself, a full disk's DiskFullError, or None (a bug)."""
+    if isinstance(exc, StationError):
+        return exc
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        where = f"{exc.filename}: " if exc.filename else ""
+        return DiskFullError(f"{where}the disk is full ({exc.strerror}); free some space and run again")
+    return None
+
+
 def exits_on_station_errors(command: Callable) -> Callable:
-    """Turn a StationError into its exit code and a one-line operator message on stderr."""
+    """Turn every error into a one-line operator message on stderr and its exit code: a StationError's
+    own, 3 for a full disk, INTERNAL_EXIT_CODE for anything unexpected (its traceback only with --verbose)."""
 
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
         try:
             return command(*args, **kwargs)
-        except StationError as exc:
-            err_console.print(f"[bold red]error:[/] {exc}", highlight=False)
-            raise typer.Exit(exc.exit_code) from exc
+        except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
+            raise
+        except Exception as exc:  # noqa: BLE001 - the top-level handler: nothing leaves as a bare traceback
+            known = as_station_error(exc)
+            if known is not None:
+                err_console.print(f"[bold red]error:[/] {known}", highlight=False)
+                raise typer.Exit(known.exit_code) from exc
+            log.debug("unexpected error", exc_info=exc)
+            first = (str(exc).strip().splitlines() or [""])[0]
+            first = first if len(first) <= 160 else first[:157] + "..."
+            err_console.print(f"[bold red]error:[/] unexpected {type(exc).__name__}: {first} "
+                              "(a fault in station; run again with --verbose for the traceback)", highlight=False)
+            raise typer.Exit(INTERNAL_EXIT_CODE) from exc
 
     return wrapper
 
@@ -56,7 +80,6 @@ def progress_reporter(description: str) -> Iterator[Callable[[int, int, str], No
 
             yield update
     else:
-        log = logging.getLogger("station")
         last = [-1]
 
         def update(done: int, total: int, what: str) -> None:

@@ -2,10 +2,14 @@
 
 Each error is catchable both as a station error and as the builtin family it belongs to
 (ophyd's `LimitError(ValueError, ...)` pattern), and carries the process exit code the CLI
-returns for it: 2 bad input or usage, 3 device or hardware fault, 1 gate failed.
+returns for it: 2 bad input or usage, 3 device or hardware fault (a full disk too), 1 gate failed.
+Anything else reaching the CLI is a fault in station itself: INTERNAL_EXIT_CODE.
 """
 
 from __future__ import annotations
+
+
+INTERNAL_EXIT_CODE = 4  # an exception no StationError names: a bug, reported without a traceback
 
 
 class StationError(Exception):

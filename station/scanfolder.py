@@ -77,6 +77,15 @@ def atomic_write_with(path: Path, writer) -> None:
     fsync_dir(path.parent)
 
 
+def remove_tree(path: Path) -> None:
+    """Remove a folder and what it holds, or only the link when `path` is a symlink (never its target)."""
+    path = Path(path)
+    if path.is_symlink() or path.is_file():
+        path.unlink()
+    elif path.is_dir():
+        shutil.rmtree(path)
+
+
 def sha256_file(path: Path) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as handle:
@@ -137,23 +146,33 @@ class ManifestEntry:
 
 
 class ScanFolder:
-    """Paths and safe I/O for one scan folder. Creating the object touches no disk."""
+    """Paths and safe I/O for one scan folder. Creating the object touches no disk.
+
+    A staged view (`staged`) sends a stage's output folders to fresh hidden siblings
+    (`.images.new`, ...) and holds its DONE marker back, so `commit` can swap the new result in
+    whole; every other path, and every path read from a file, means what it will mean after the swap.
+    """
 
     def __init__(self, root: Path | str):
         self.root = Path(root).resolve()
+        self._staging: dict[str, Path] = {}  # output folder name -> its fresh sibling
+        self._held: dict[str, dict[str, Any]] = {}  # DONE markers held back until the commit
+
+    def _folder(self, name: str) -> Path:
+        return self._staging.get(name, self.root / name)
 
     # Paths owned by each stage -------------------------------------------------------------
     scan_json = property(lambda self: self.root / "scan.json")
     manifest_path = property(lambda self: self.root / "manifest.jsonl")
     raw_dir = property(lambda self: self.root / "raw")
     sim_truth_dir = property(lambda self: self.root / "sim_truth")
-    images_dir = property(lambda self: self.root / "images")
-    images_linear_dir = property(lambda self: self.root / "images_linear")
-    masks_dir = property(lambda self: self.root / "masks")
-    poses_dir = property(lambda self: self.root / "poses")
-    transforms_path = property(lambda self: self.root / "poses" / "transforms.json")
-    model_dir = property(lambda self: self.root / "model")
-    asset_dir = property(lambda self: self.root / "asset")
+    images_dir = property(lambda self: self._folder("images"))
+    images_linear_dir = property(lambda self: self._folder("images_linear"))
+    masks_dir = property(lambda self: self._folder("masks"))
+    poses_dir = property(lambda self: self._folder("poses"))
+    transforms_path = property(lambda self: self._folder("poses") / "transforms.json")
+    model_dir = property(lambda self: self._folder("model"))
+    asset_dir = property(lambda self: self._folder("asset"))
     stages_dir = property(lambda self: self.root / "stages")
 
     def resolve_inside(self, relative: str | Path) -> Path:
@@ -161,7 +180,81 @@ class ScanFolder:
         candidate = (self.root / relative).resolve()
         if candidate != self.root and self.root not in candidate.parents:
             raise ScanFolderError(f"{self.root}: path {str(relative)!r} resolves outside the scan folder")
+        parts = candidate.relative_to(self.root).parts
+        if parts and parts[0] in self._staging:
+            return self._staging[parts[0]].joinpath(*parts[1:])
         return candidate
+
+    # Stage output folders: containment and the atomic swap --------------------------------------
+    def owned_folder(self, name: str) -> Path:
+        """`root/name`, refused when it is a symlink or not a plain child of the root: a stage never
+        writes, nor deletes, through a link."""
+        path = self.root / name
+        if path.is_symlink():
+            raise ScanFolderError(f"{path}: is a symbolic link; a stage folder must be a real folder inside "
+                                  "the scan folder (nothing is written or deleted through a link)")
+        if path.exists() and not path.is_dir():
+            raise ScanFolderError(f"{path}: expected a folder, found a file")
+        if path.resolve().parent != self.root:
+            raise ScanFolderError(f"{self.root}: stage folder {name!r} resolves outside the scan folder")
+        return path
+
+    def staging_path(self, name: str) -> Path:
+        return self.root / f".{name}.new"
+
+    def _old_path(self, name: str) -> Path:
+        return self.root / f".{name}.old"
+
+    def _journal(self, stage: str) -> Path:
+        return self.stages_dir / f".{stage}.swap.json"
+
+    def staged(self, stage: str, folders: Iterable[str], keep: bool = False) -> "ScanFolder":
+        """A view of this folder whose `folders` are fresh siblings; `keep` reuses a sibling left by an
+        interrupted run of the same work (a resumable checkpoint)."""
+        self.recover(stage, folders)
+        view = ScanFolder(self.root)
+        for name in folders:
+            self.owned_folder(name)
+            self.owned_folder(f".{name}.new")
+            staging = self.staging_path(name)
+            if not keep:
+                remove_tree(staging)
+            staging.mkdir(exist_ok=True)
+            view._staging[name] = staging
+        self.owned_folder("stages").mkdir(exist_ok=True)
+        return view
+
+    def commit(self, staged: "ScanFolder", stage: str) -> None:
+        """Swap the staged folders in (a journal makes a crash half-way roll forward), then write the
+        held DONE markers."""
+        names = list(staged._staging)
+        atomic_write_json(self._journal(stage), {"folders": names})
+        self._roll_forward(stage, names)
+        for held_stage, info in staged._held.items():
+            self.mark_done(held_stage, info)
+
+    def recover(self, stage: str, folders: Iterable[str]) -> None:
+        """Finish a swap a crash interrupted, and drop the old folders a finished swap left behind."""
+        self.owned_folder("stages")
+        journal = self._journal(stage)
+        if journal.is_file():
+            names = self.read_json(journal).get("folders", [])
+            self._roll_forward(stage, [n for n in names if isinstance(n, str) and n in set(folders)])
+        for name in folders:
+            remove_tree(self._old_path(name))
+
+    def _roll_forward(self, stage: str, names: list[str]) -> None:
+        for name in names:
+            target, staging, old = self.owned_folder(name), self.staging_path(name), self._old_path(name)
+            if staging.is_dir() and not staging.is_symlink():
+                if target.exists():
+                    remove_tree(old)
+                    os.replace(target, old)
+                os.replace(staging, target)
+        fsync_dir(self.root)
+        self._journal(stage).unlink(missing_ok=True)
+        for name in names:
+            remove_tree(self._old_path(name))
 
     # scan.json -----------------------------------------------------------------------------
     def read_scan_json(self) -> dict[str, Any]:
@@ -202,7 +295,11 @@ class ScanFolder:
 
     # Stage markers ------------------------------------------------------------------------
     def mark_done(self, stage: str, info: dict[str, Any]) -> None:
-        atomic_write_json(self.stages_dir / f"{stage}.json", info)
+        """Write stages/<stage>.json; a staged view holds it back until its folders are swapped in."""
+        if self._staging:
+            self._held[stage] = info
+        else:
+            atomic_write_json(self.owned_folder("stages") / f"{stage}.json", info)
 
     def stage_info(self, stage: str) -> dict[str, Any] | None:
         path = self.stages_dir / f"{stage}.json"
@@ -212,4 +309,4 @@ class ScanFolder:
         return (self.stages_dir / f"{stage}.json").exists()
 
     def clear_done(self, stage: str) -> None:
-        (self.stages_dir / f"{stage}.json").unlink(missing_ok=True)
+        (self.owned_folder("stages") / f"{stage}.json").unlink(missing_ok=True)

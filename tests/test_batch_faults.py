@@ -13,6 +13,7 @@ The documented states (station/batch/runner.py):
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -20,13 +21,13 @@ from pathlib import Path
 import pytest
 
 from batch_support import TINY_RUN, batch, events, shoot, status, verify_scan
-from station.ngs.trainer import INJECT_NAN_ENV
 from station.scanfolder import ScanFolder, sha256_file
 
 pytestmark = pytest.mark.slow
 
 CORRUPT_RAW = "raw/e1_a003.dng"
 EMPTY_VIEW = "raw/e1_a005.dng"
+FAULT_HOOKS = Path(__file__).parent / "fault_hooks"  # its sitecustomize injects the NaN into a training run
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +61,8 @@ def faulty_batch(shot, tmp_path_factory) -> dict:
     shoot_an_empty_view(scans["empty_view"], EMPTY_VIEW)
     queue = root / "queue.sqlite"
     assert batch("add", *scans.values(), "--queue", queue).returncode == 0
-    nan = {INJECT_NAN_ENV: f"5:{scans['diverges'] / 'model'}"}
+    nan = {"STATION_TEST_INJECT_NAN": f"5:{scans['diverges']}",
+           "PYTHONPATH": os.pathsep.join([str(FAULT_HOOKS), os.environ.get("PYTHONPATH", "")])}
     result = batch("run", "--workers", "2", *TINY_RUN, "--queue", queue, "--json", env=nan)
     return {"root": root, "scans": scans, "queue": queue, "result": result, "jobs": status(queue)}
 

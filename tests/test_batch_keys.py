@@ -110,10 +110,29 @@ def test_an_unreadable_record_counts_as_not_finished(scan):
 
 def test_training_outputs_exclude_its_checkpoint_but_cleaning_removes_it(scan):
     assert "model/checkpoint.pt" not in output_digest(scan, TRAIN)
+    half_done = scan.staging_path("model") / "checkpoint.pt"  # an interrupted run's fresh folder
+    half_done.parent.mkdir()
+    half_done.write_bytes(b"stale")
     clean_stage(scan, TRAIN)
-    assert not (scan.model_dir / "checkpoint.pt").exists() and not (scan.model_dir / "surface.pt").exists()
+    assert not (scan.model_dir / "checkpoint.pt").exists() and not scan.staging_path("model").exists()
     assert not scan.is_done("train")
+    # the last complete result stays until a new run swaps its own in
+    assert (scan.model_dir / "surface.pt").exists()
     assert (scan.images_dir / "e0_a000.png").exists() and (scan.asset_dir / "splat.ply").exists()
+
+
+def test_cleaning_never_deletes_through_a_symlinked_stage_folder(scan, tmp_path):
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (outside / "checkpoint.pt").write_bytes(b"not the scan's")
+    (outside / "surface.pt").write_bytes(b"not the scan's")
+    (scan.root / "model" / "surface.pt").unlink()
+    (scan.root / "model" / "checkpoint.pt").unlink()
+    (scan.root / "model").rmdir()
+    (scan.root / "model").symlink_to(outside)
+    assert output_digest(scan, TRAIN) == {"stages/train.json": output_digest(scan, TRAIN)["stages/train.json"]}
+    clean_stage(scan, TRAIN)
+    assert sorted(p.name for p in outside.iterdir()) == ["checkpoint.pt", "surface.pt"]
 
 
 def test_only_a_started_record_under_the_same_key_may_be_resumed(scan):

@@ -3,7 +3,7 @@
 import pytest
 
 from station.errors import ScanFolderError
-from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, sha256_bytes
+from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, remove_tree, sha256_bytes
 
 
 def test_atomic_write_replaces_whole_file_and_leaves_no_temp(tmp_path):
@@ -36,3 +36,38 @@ def test_malformed_manifest_line_names_the_file(tmp_path):
     scan.manifest_path.write_text('{"file": "raw/x.dng"}\n')
     with pytest.raises(ScanFolderError, match="manifest.jsonl"):
         scan.read_manifest()
+
+
+def test_a_stage_folder_that_is_a_link_or_a_file_is_refused(tmp_path):
+    scan = ScanFolder(tmp_path / "scan")
+    scan.root.mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    (scan.root / "masks").symlink_to(tmp_path / "elsewhere")
+    (scan.root / "model").write_bytes(b"a file where a folder belongs")
+    with pytest.raises(ScanFolderError, match="masks: is a symbolic link"):
+        scan.owned_folder("masks")
+    with pytest.raises(ScanFolderError, match="expected a folder"):
+        scan.owned_folder("model")
+    assert scan.owned_folder("images") == scan.root / "images"  # absent is fine: the stage creates it
+
+
+def test_removing_a_linked_tree_removes_the_link_and_never_its_target(tmp_path):
+    target = tmp_path / "elsewhere"
+    target.mkdir()
+    (target / "keep.png").write_bytes(b"not the scan's")
+    link = tmp_path / "scan" / ".masks.new"
+    link.parent.mkdir()
+    link.symlink_to(target)
+    remove_tree(link)
+    assert not link.exists() and (target / "keep.png").read_bytes() == b"not the scan's"
+
+
+def test_a_staged_view_writes_only_into_its_fresh_folder_until_the_commit(tmp_path):
+    scan = ScanFolder(tmp_path / "scan")
+    atomic_write_bytes(scan.model_dir / "surface.pt", b"old")
+    staged = scan.staged("train", ("model",))
+    atomic_write_bytes(staged.model_dir / "surface.pt", b"new")
+    assert (scan.model_dir / "surface.pt").read_bytes() == b"old" and staged.images_dir == scan.images_dir
+    scan.commit(staged, "train")
+    assert (scan.model_dir / "surface.pt").read_bytes() == b"new"
+    assert sorted(p.name for p in scan.root.iterdir()) == ["model", "stages"]

@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from station.batch.stages import STAGES, StageName, output_digest
 from station.errors import DiskFullError, StationError, TrainingError
+from station.pipeline import StageName, output_digest, perform, spec
 from station.scanfolder import ScanFolder
 
 OutcomeKind = Literal[
@@ -91,38 +91,15 @@ def limit_threads(threads: int) -> None:
     cv2.setNumThreads(threads)
 
 
-def _run(call: StageCall) -> dict[str, Any]:
-    root = Path(call.scan)
-    if call.stage == "process":
-        from station.process.develop_stage import ProcessSettings
-        from station.process.stage import process_scan
-
-        result = process_scan(root, ProcessSettings(training_width=call.params.get("training_width")))
-        return {"flags": result["flags"], "usable_shots": result["develop"]["usable_shots"],
-                "frames": [{"file": f["file"], "flags": f["flags"]} for f in result["develop"]["frames"] if f["flags"]]}
-    if call.stage == "train":
-        from station.ngs.pipeline import train_scan
-
-        report = train_scan(root, method=call.params["method"], preset=call.params["preset"])
-        return {**asdict(report), "preset": call.params["preset"]}
-    from station.export.stage import ExportConfig, export_scan
-
-    report = export_scan(root, ExportConfig())
-    # each check's reason is "<measurement>: <advice>"; the measurement is enough for the summary
-    failed = [check.reason.split(": ")[0] for check in report.gate.failures()]
-    return {"pass": report.passed, "failed_checks": failed}
-
-
 def execute_stage(call: StageCall) -> Outcome:
     """Run the stage and hash its outputs; every failure becomes an Outcome, never an exception."""
     started = time.perf_counter()
     seconds = 0.0
     try:
         limit_threads(call.threads)
-        summary = _run(call)
+        _, summary = perform(call.scan, call.stage, call.params)
         seconds = time.perf_counter() - started
-        spec = next(s for s in STAGES if s.name == call.stage)
-        outputs = output_digest(ScanFolder(call.scan), spec)
+        outputs = output_digest(ScanFolder(call.scan), spec(call.stage))
     except Exception as exc:  # noqa: BLE001 - the runner decides per kind; the message keeps the type
         kind = classify(exc)
         where = traceback.extract_tb(exc.__traceback__)[-1]

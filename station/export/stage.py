@@ -1,9 +1,10 @@
 """`station export SCAN`: a trained scan folder's model/ becomes its asset/ folder.
 
-Order matters for an unattended run: every asset file is written (atomically) before the gate
-judges it, so a quarantined asset can still be inspected, and the verdict files (gate.json,
-QUARANTINED.txt, report.html) come last. Re-running redoes every step and overwrites; a
-quarantine marker left from an earlier run is removed only when the new verdict passes.
+Order matters for an unattended run: the old verdict goes first, then every asset file is written
+(atomically) before the gate judges it, so a quarantined asset can still be inspected, and the
+verdict files (gate.json, QUARANTINED.txt, report.html) come last. Re-running redoes every step
+and overwrites; a quarantine marker left from an earlier run is removed only when the new verdict
+passes.
 """
 
 from __future__ import annotations
@@ -187,11 +188,18 @@ def _quarantine_text(scan: ScanFolder, gate: GateResult) -> str:
     return "\n".join(lines)
 
 
-def export_scan(scan_root: Path, config: ExportConfig | None = None) -> ExportReport:
+def clear_verdict(scan: ScanFolder) -> None:
+    """Remove the last verdict before anything else: a failed or killed export must not sit under an old pass."""
+    (scan.asset_dir / "gate.json").unlink(missing_ok=True)
+    scan.clear_done("export")
+
+
+def export_scan(scan_root: Path | ScanFolder, config: ExportConfig | None = None) -> ExportReport:
     """Write asset/ (splats, infill, mesh, metrics, gate, report) from a trained scan folder."""
     config = config or ExportConfig()
     started = time.perf_counter()
-    scan = ScanFolder(scan_root)
+    scan = scan_root if isinstance(scan_root, ScanFolder) else ScanFolder(scan_root)
+    clear_verdict(scan)
     surface, downscale = load_surface(scan)
     scene = load_scene(scan.root, downscale=downscale)
     cameras = [Camera(v.viewmat, v.K, v.width, v.height) for v in scene.train]

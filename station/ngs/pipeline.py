@@ -1,6 +1,7 @@
 """Train a scan folder end to end: pick the preset, load the posed views, train, write model/.
 
-The CLI's `station train` calls `train_scan`; everything it writes goes through the atomic writers.
+`station/pipeline.py` calls `train_scan` with the model folder staged; everything it writes goes through
+the atomic writers.
 """
 
 from __future__ import annotations
@@ -57,13 +58,14 @@ def write_model(trainer: Trainer, report: TrainReport) -> None:
     atomic_write_json(model_dir / "train_metrics.json", metrics)
 
 
-def train_scan(scan_root: Path, method: str = "ngs", preset: str = "fast",
-               progress: Callable[[int, dict], None] | None = None) -> TrainReport:
-    """Train `method` with `preset` on a posed scan folder; resumes from model/checkpoint.pt."""
-    scan = ScanFolder(scan_root)
+def train_scan(scan_root: Path | ScanFolder, method: str = "ngs", preset: str = "fast",
+               progress: Callable[[int, dict], None] | None = None, inputs: str = "") -> TrainReport:
+    """Train `method` with `preset` on a posed scan folder; resumes from model/checkpoint.pt when it was
+    written from the same `inputs` (the fingerprint of the posed views)."""
+    scan = scan_root if isinstance(scan_root, ScanFolder) else ScanFolder(scan_root)
     cfg = make_config(method, preset)
     scene = load_scene(scan.root, downscale=cfg.downscale, seed=cfg.seed)
-    trainer = Trainer(scene, cfg, scan.model_dir)
+    trainer = Trainer(scene, cfg, scan.model_dir, inputs)
     report = trainer.run(progress)
     write_model(trainer, report)
     scan.mark_done("train", asdict(report))

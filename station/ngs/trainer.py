@@ -7,8 +7,8 @@ killed run continues where it stopped.
 
 from __future__ import annotations
 
+import logging
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -31,9 +31,7 @@ from station.scanfolder import atomic_write_with
 
 Method = Literal["3dgs", "alpha", "ngs"]
 CHECKPOINT = "checkpoint.pt"
-# Fault injection for the batch tests: "STEP:MODEL_DIR" writes a NaN into one mean at STEP of the
-# run whose model folder is MODEL_DIR, so the loop's own check_finite guard is what stops it.
-INJECT_NAN_ENV = "STATION_TEST_INJECT_NAN"
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -80,12 +78,6 @@ def object_pixels(scene: SceneData) -> float | None:
     return sum(areas) / len(areas) if areas else None
 
 
-def injected_nan_step(model_dir: Path) -> int | None:
-    """The step INJECT_NAN_ENV poisons for this model folder, or None (always, outside the tests)."""
-    step, _, folder = os.environ.get(INJECT_NAN_ENV, "").partition(":")
-    return int(step) if step.isdigit() and folder and Path(folder).resolve() == model_dir.resolve() else None
-
-
 def check_finite(step: int, named: dict[str, torch.Tensor]) -> None:
     for name, tensor in named.items():
         if not bool(torch.isfinite(tensor).all()):
@@ -93,8 +85,9 @@ def check_finite(step: int, named: dict[str, torch.Tensor]) -> None:
 
 
 class Trainer:
-    def __init__(self, scene: SceneData, cfg: TrainConfig, model_dir: Path):
-        self.scene, self.cfg, self.model_dir = scene, cfg, Path(model_dir)
+    def __init__(self, scene: SceneData, cfg: TrainConfig, model_dir: Path, inputs: str = ""):
+        """`inputs` fingerprints the posed views; a checkpoint is resumed only from the same fingerprint."""
+        self.scene, self.cfg, self.model_dir, self.inputs = scene, cfg, Path(model_dir), inputs
         self.model = Gaussians.from_points(scene.points, scene.point_colors, cfg.sh_degree, cfg.seed)
         self.optimizers = self._make_optimizers()
         densify = cfg.densify.scaled(cfg.steps)
@@ -111,7 +104,6 @@ class Trainer:
         self.losses: list[dict] = []
         self.evals: list[dict] = []
         self.extensions: list[dict] = []
-        self.nan_step = injected_nan_step(self.model_dir)
 
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         lrs = {
@@ -157,9 +149,6 @@ class Trainer:
 
     def train_step(self, step: int) -> dict[str, float]:
         """One image, one Adam step; densification and NGS hooks around it."""
-        if step == self.nan_step:
-            with torch.no_grad():
-                self.model.params["means"][0, 0] = float("nan")
         check_finite(step, {f"parameter {k}": v for k, v in self.model.params.items()})
         views = self.train_views()
         view = views[int(torch.randint(len(views), (1,), generator=self.generator))]
@@ -273,6 +262,7 @@ class Trainer:
     def state_dict(self) -> dict:
         return {
             "config": asdict(self.cfg),
+            "inputs": self.inputs,
             "step": self.step,
             "seconds": self.seconds,
             "model": self.model.state_dict(),
@@ -292,11 +282,14 @@ class Trainer:
         atomic_write_with(self.model_dir / CHECKPOINT, lambda tmp: torch.save(state, tmp))
 
     def load_checkpoint(self) -> int:
-        """Continue from model/checkpoint.pt if it was written by the same configuration."""
+        """Continue from model/checkpoint.pt if it was written by the same configuration on the same views."""
         path = self.model_dir / CHECKPOINT
         if not path.is_file():
             return 0
         state = torch.load(path, weights_only=True)  # the scan folder is untrusted: no pickled code
+        if state.get("inputs", "") != self.inputs:
+            log.warning("%s: written from other posed views; training starts over", path)
+            return 0
         if state["config"] != asdict(self.cfg):
             raise TrainingError(f"{path}: written by another training configuration; delete it to start over")
         self.model = Gaussians.from_state_dict(state["model"])

@@ -33,7 +33,7 @@ def station_rig_model(scan: ScanFolder, rig_model: Path | None) -> RigModel | No
 
 
 def process_scan(
-    scan_root: Path,
+    scan_root: Path | ScanFolder,
     develop: ProcessSettings = ProcessSettings(),
     poses: PoseSettings = PoseSettings(),
     rig_model: Path | None = None,
@@ -41,7 +41,7 @@ def process_scan(
 ) -> dict:
     """Develop + masks, then poses, then the masks again with the other rings' silhouettes; returns (and
     records in stages/process.json) the reports."""
-    scan = ScanFolder(scan_root)
+    scan = scan_root if isinstance(scan_root, ScanFolder) else ScanFolder(scan_root)
     if not scan.root.is_dir():
         raise BadInputError(f"{scan.root}: scan folder not found")
     prior = station_rig_model(scan, rig_model)  # a missing rig model is refused before the long develop

@@ -2,7 +2,7 @@
 
 Who may do what: on a loopback address anyone on this machine may, but the Host header must name
 loopback too (a page elsewhere cannot rebind its name to 127.0.0.1 and drive the rig). On any
-other address a token is required (STATION_TOKEN), as `Authorization: Bearer` or as the
+other address a token is required (`serve --token` or STATION_TOKEN), as `Authorization: Bearer` or as the
 `station_token` cookie the page sets from its `#token=` fragment. Every route that reads scans or
 moves hardware checks it, and buttons refuse a request sent from another origin.
 """
@@ -65,10 +65,10 @@ def is_loopback(host: str) -> bool:
 def check_exposure(host: str, token: str | None) -> None:
     """Only loopback goes without a token: whoever reaches the port could read scans and move the rig."""
     if token is not None and len(token) < MIN_TOKEN_LENGTH:
-        raise BadInputError(f"STATION_TOKEN is too short: use at least {MIN_TOKEN_LENGTH} random characters")
+        raise BadInputError(f"--token (STATION_TOKEN) is too short: use at least {MIN_TOKEN_LENGTH} random characters")
     if token is None and not is_loopback(host):
         raise BadInputError(
-            f"serve --host {host}: only a loopback address may be served without a token; set STATION_TOKEN"
+            f"serve --host {host}: only a loopback address may be served without a token; give --token or set STATION_TOKEN"
         )
 
 

@@ -13,9 +13,10 @@ from typing import Callable
 
 from station.batch.store import Job, JobStore
 from station.errors import BadInputError, ScanFolderError
+from station.pipeline import STAGE_NAMES, stage_done
 from station.scanfolder import ScanFolder
 
-STAGES = ("capture", "process", "train", "export")
+STAGES = ("capture", *STAGE_NAMES)  # capture is the session's (stages/capture.json); the rest the pipeline's
 REPORT = "asset/report.html"
 GATE = "asset/gate.json"
 MAX_GATE_BYTES = 1 << 20
@@ -81,7 +82,7 @@ class ScanCatalog:
             "folder": str(scan.root),
             "source": source,
             "job": None if job is None else {k: v for k, v in job.to_dict().items() if k not in ("scan", "lease_owner")},
-            "stages": {stage: scan.is_done(stage) for stage in STAGES},
+            "stages": {stage: stage_done(scan, stage) for stage in STAGES},
             "gate": gate_verdict(scan),
             "report_url": f"/scans/{key}/report" if _has_report(scan) else None,
         }
