@@ -35,8 +35,11 @@ def manifest_record(line: str, source: object, number: int) -> dict[str, Any]:
     utc = raw.get("utc", "")
     if not isinstance(utc, str):
         raise FormatError(source, f"{where}.utc", "must be a string")
+    file = text(raw.get("file"), source, f"{where}.file")
+    if file.startswith("/") or ".." in file.replace("\\", "/").split("/"):
+        raise FormatError(source, f"{where}.file", f"{file[:80]!r} must be a path inside the scan folder")
     return {
-        "file": text(raw.get("file"), source, f"{where}.file"),
+        "file": file,
         "sha256": sha,
         "elevation_deg": finite_number(raw.get("elevation_deg"), source, f"{where}.elevation_deg", low=-90.0, high=90.0),
         "azimuth_deg": finite_number(raw.get("azimuth_deg"), source, f"{where}.azimuth_deg", low=-360.0, high=720.0),

@@ -142,7 +142,7 @@ def load_scene(scan_root: Path, downscale: int = 1, test_every: int = 8, seed: i
                limits: ImageLimits = DEFAULT_LIMITS) -> SceneData:
     """Read transforms.json (checked by station.formats.transforms), images, masks and the sparse cloud."""
     scan = ScanFolder(scan_root)
-    source = scan.transforms_path
+    source = scan.resolve_inside("poses/transforms.json")  # a link out of the folder is refused, not followed
     if downscale < 1:
         raise BadInputError(f"downscale factor must be >= 1, got {downscale}")
     doc = parse_transforms(read_json_object(source), source)

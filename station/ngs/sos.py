@@ -124,7 +124,7 @@ def evaluate(surface: Gaussians, infill: Infill, views: list[View], out_dir: Pat
 
 def load_surface(scan: ScanFolder) -> tuple[Gaussians, int]:
     """The trained surface and the downscale it was trained at."""
-    path = scan.model_dir / "surface.pt"
+    path = scan.resolve_inside("model/surface.pt")
     if not path.is_file():
         raise BadInputError(f"{path}: no trained model; run `station train` first")
     data = load_surface_file(path)
@@ -133,7 +133,7 @@ def load_surface(scan: ScanFolder) -> tuple[Gaussians, int]:
 
 def scan_infill(scan: ScanFolder, surface: Gaussians, cameras: list[Camera]) -> tuple[Infill, str]:
     """This scan's NGS infill if it has a non-empty one, else one built from the scored surface itself."""
-    path = scan.model_dir / "infill.pt"
+    path = scan.resolve_inside("model/infill.pt")
     if path.is_file():
         infill = Infill.from_state_dict(load_infill_file(path))
         if len(infill):

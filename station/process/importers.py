@@ -29,6 +29,7 @@ import pycolmap
 from PIL import Image
 
 from station.errors import BadInputError, FormatError, ScanFolderError
+from station.formats.colmap import check_colmap_binary
 from station.formats.images import DEFAULT_LIMITS, ImageLimits, checked_size, open_pil
 from station.formats.jsonfile import read_json_object
 from station.formats.transforms import (CameraFields, NerfTransforms, PinholeCamera, check_camera, check_rotation,
@@ -166,10 +167,11 @@ def read_colmap(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDatase
     for file in model_dir.iterdir():
         if file.stem in ("cameras", "images", "points3D", "rigs", "frames"):
             _inside(root, file, model_dir, file.name)
+    check_colmap_binary(model_dir)
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
-    except (RuntimeError, ValueError) as exc:
-        raise BadInputError(f"{model_dir}: unreadable COLMAP model ({exc})") from exc
+    except Exception as exc:  # pycolmap's C++ reader raises many types on a malformed model
+        raise FormatError(model_dir, None, f"unreadable COLMAP model ({type(exc).__name__}: {exc})") from exc
     if rec.num_cameras() != 1:
         raise BadInputError(f"{model_dir}: {rec.num_cameras()} cameras; one shared camera is supported")
     camera = next(iter(rec.cameras.values()))

@@ -91,7 +91,7 @@ def _relative_path(scan: ScanFolder, value: str, source: Path, field: str, must_
 
 def read_transforms(scan: ScanFolder, check_files: bool = True) -> Transforms:
     """Read and validate poses/transforms.json (station.formats.transforms); poses come back in OpenCV axes."""
-    source = scan.transforms_path
+    source = scan.resolve_inside("poses/transforms.json")  # a link out of the folder is refused, not followed
     doc = parse_transforms(read_json_object(source), source)
     cam = shared_pinhole(doc)
     frames = []
