@@ -96,9 +96,7 @@ def garbage(path: Path, size: int = 4096, seed: int = 0) -> None:
 
 def relink(path: Path, target: Path) -> None:
     """Replace `path` by a symlink to `target` (outside the folder under test)."""
-    if target.exists() or target.is_symlink():
-        pass
-    elif path.is_dir():
+    if path.is_dir():
         shutil.copytree(path, target)
     elif path.exists():
         shutil.copy2(path, target)

@@ -41,7 +41,9 @@ def checked_size(path: Path, field: str | None = None, limits: ImageLimits = DEF
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # our own limit decides below
             with Image.open(path) as img:  # reads the header only
                 width, height = img.size
-    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError, SyntaxError) as exc:
+    except Image.DecompressionBombError as exc:  # Pillow's own cap, twice Image.MAX_IMAGE_PIXELS
+        raise InputTooLargeError(path, field, f"header claims too many pixels ({exc})") from exc
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
         raise FormatError(path, field, f"not a readable image ({exc})") from exc
     if width < 1 or height < 1 or max(width, height) > limits.max_side or width * height > limits.max_pixels:
         raise InputTooLargeError(path, field, f"header says {width}x{height} pixels, beyond the limit of "
