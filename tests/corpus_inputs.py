@@ -302,16 +302,18 @@ def _splat_body(count: int) -> bytes:
     return rec.tobytes()
 
 
-SPLAT_PLY_BAD = {  # name -> (bytes, whether station/export and ngs PLY readers belong to h26's fix)
-    "garbage": (lambda: bytes(range(256)) * 8, False),
-    "empty": (lambda: b"", False),
-    "truncated_body": (lambda: ply_header(SPLAT_PROPS, 10) + _splat_body(10)[:100], False),
-    "missing_property": (lambda: ply_header(SPLAT_PROPS[:-1], 4) + np.zeros((4, 16), np.float32).tobytes(), False),
-    "count_smaller_than_body": (lambda: ply_header(SPLAT_PROPS, 4) + _splat_body(8), True),
-    "face_first": (lambda: ply_header(SPLAT_PROPS, 4, "element face 2\nproperty list uchar int vertex_indices")
-                   + bytes([3, 0, 0, 0, 0, 1, 0, 0, 0, 2, 0, 0, 0]) * 2 + _splat_body(4), True),
-    "duplicate_property": (lambda: ply_header(SPLAT_PROPS + ["opacity"], 4) + np.zeros((4, 18), np.float32).tobytes(), True),
-    "count_huge": (lambda: ply_header(SPLAT_PROPS, 10**12) + _splat_body(4), False),
+SPLAT_PLY_BAD = {  # `sos --splat OTHER.ply`: the reader is ngs/inria_ply.py (h26's exact-layout fix)
+    "garbage": lambda: bytes(range(256)) * 8,
+    "empty": lambda: b"",
+    "truncated_body": lambda: ply_header(SPLAT_PROPS, 10) + _splat_body(10)[:100],
+    "missing_property": lambda: ply_header(SPLAT_PROPS[:-1], 4) + np.zeros((4, 16), np.float32).tobytes(),
+    "count_smaller_than_body": lambda: ply_header(SPLAT_PROPS, 4) + _splat_body(8),
+    "face_first_body_short": lambda: (ply_header(SPLAT_PROPS, 4, "element face 2\nproperty list uchar int vertex_indices")
+                                      + bytes([3, 0, 0, 0, 0, 1, 0, 0, 0, 2, 0, 0, 0]) * 2 + _splat_body(3)),
+    "face_list_overrun": lambda: (ply_header(SPLAT_PROPS, 4, "element face 1\nproperty list uchar int vertex_indices")
+                                  + bytes([255]) + _splat_body(4)),
+    "duplicate_property": lambda: ply_header(SPLAT_PROPS + ["opacity"], 4) + np.zeros((4, 18), np.float32).tobytes(),
+    "count_huge": lambda: ply_header(SPLAT_PROPS, 10**12) + _splat_body(4),
 }
 
 
