@@ -29,13 +29,14 @@ with warnings.catch_warnings():  # Starlette 1.x asks for httpx2 and warns when 
     from fastapi.testclient import TestClient
 
 import corpus_inputs as ci
+import corpus_sources as cs
 from station.cli import app
 from test_import import colmap_world_cameras, ring_cameras, write_colmap, write_idr, write_nerfstudio
 from test_trainer import write_sphere_scan
 
 SPLAT_CASES = [ci.Case("sos", f"splat_{name}", ci.splat_case(data), "other.ply") for name, data in ci.SPLAT_PLY_BAD.items()]
-CASES = (ci.train_cases() + ci.model_cases("sos") + ci.model_cases("export") + SPLAT_CASES + ci.import_cases()
-         + ci.process_cases() + ci.batch_cases() + ci.serve_cli_cases())
+CASES = (ci.train_cases() + ci.model_cases("sos") + ci.model_cases("export") + SPLAT_CASES + cs.import_cases()
+         + cs.process_cases() + cs.batch_cases() + cs.serve_cli_cases())
 
 
 def _captured(root: Path) -> None:
@@ -60,7 +61,7 @@ def bases(tmp_path_factory) -> ci.Bases:
     write_sphere_scan(posed)
     ci.copy_base(posed, trained)
     (trained / "model").mkdir()
-    torch.save(ci._surface(), trained / "model" / "surface.pt")
+    torch.save(ci.surface_state(), trained / "model" / "surface.pt")
     torch.save({"means": torch.zeros(4, 3), "scales": torch.full((4,), 0.05), "levels": torch.full((4,), 8)},
                trained / "model" / "infill.pt")
     _captured(root / "captured")
@@ -188,13 +189,13 @@ def _queued_scan_with_gate(folder: Path, outside: Path, spoil) -> Path:
     return folder / "queue.sqlite"
 
 
-@pytest.mark.parametrize("name", sorted(ci.GATE_BAD))
+@pytest.mark.parametrize("name", sorted(cs.GATE_BAD))
 def test_the_dashboard_shows_a_malformed_gate_verdict_as_an_error_not_a_crash(name, sandbox):
     from station.cli_serve import make_dashboard
 
     folder, outside = sandbox
     folder.mkdir()
-    queue = _queued_scan_with_gate(folder, outside, ci.GATE_BAD[name])
+    queue = _queued_scan_with_gate(folder, outside, cs.GATE_BAD[name])
     before = snapshot(folder.parent, folder)
     app_ = make_dashboard(host="127.0.0.1", sim=False, device=None, camera="usb", queue=queue, out_dir=folder / "scans",
                           size=(320, 240), time_scale=0.05, elevations=6, azimuths=40, token=None)
@@ -219,7 +220,7 @@ def test_the_dashboard_answers_a_malformed_queue_with_an_error(spoil, sandbox):
         for i in range(40):
             (folder / f"s{i}" / "stages").mkdir(parents=True)
             scans.append(folder / f"s{i}")
-        ci._corrupt_page(ci._queue_with(folder, scans))
+        cs.corrupt_page(cs.queue_with(folder, scans))
     app_ = make_dashboard(host="127.0.0.1", sim=False, device=None, camera="usb", queue=folder / "queue.sqlite",
                           out_dir=folder / "scans", size=(320, 240), time_scale=0.05, elevations=6, azimuths=40, token=None)
     with TestClient(app_, base_url="http://127.0.0.1:8000", raise_server_exceptions=True) as client:
@@ -247,7 +248,7 @@ def test_a_real_process_prints_one_error_line_and_no_traceback(case_id, sandbox,
 
 def test_the_corpus_holds_over_a_hundred_inputs_across_every_command():
     counts = Counter(c.command for c in CASES)
-    counts["serve"] += len(ci.GATE_BAD) + 2  # the dashboard tests above
+    counts["serve"] += len(cs.GATE_BAD) + 2  # the dashboard tests above
     sys.stdout.write(json.dumps(dict(sorted(counts.items()))) + "\n")
     assert set(counts) == {"process", "train", "import", "sos", "export", "batch", "serve"}
     assert sum(counts.values()) >= 100 and min(counts.values()) >= 8
