@@ -219,7 +219,7 @@ def _decompose_projection(p: np.ndarray, source: object, field: str) -> tuple[np
     p = np.asarray(p, dtype=np.float64)[:3, :4]
     if not np.isfinite(p).all():
         raise FormatError(source, field, "projection matrix holds NaN or infinity")
-    if abs(np.linalg.det(p[:, :3])) < 1e-12 * max(np.abs(p[:, :3]).max(), 1e-300) ** 3:
+    if not np.linalg.cond(p[:, :3]) < 1e12:  # inf or NaN for an all-zero block
         raise FormatError(source, field, "projection matrix is singular (its left 3x3 has no inverse)")
     # OpenCV splits P into K, R (world-to-camera) and the homogeneous centre.
     k, r, centre = cv2.decomposeProjectionMatrix(p)[:3]
