@@ -100,6 +100,9 @@ def import_cases() -> list[Case]:
 
 
 # process: manifest.jsonl and raws ------------------------------------------------------------------
+EMPTY_SHA256 = "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855"
+
+
 def manifest_case(change: Callable[[list[dict]], None] | None = None, data: bytes | None = None) -> Builder:
     def build(case: Path, outside: Path, bases: Bases) -> list[str]:
         copy_base(bases.captured, case)
@@ -118,6 +121,14 @@ def _field(index: int, key: str, value) -> Callable[[list[dict]], None]:
     return lambda lines: lines[index].__setitem__(key, value)
 
 
+def _emptied_raws(case: Path, outside: Path, bases: Bases) -> list[str]:
+    """Every raw 0 bytes, with the checksum of 0 bytes in the manifest: it passes verification, then must not decode."""
+    argv = manifest_case(lambda lines: [line.update(sha256=EMPTY_SHA256) for line in lines])(case, outside, bases)
+    for raw in (case / "raw").iterdir():
+        raw.write_bytes(b"")
+    return argv
+
+
 def process_cases() -> list[Case]:
     fields = {
         "elevation_nan": _field(0, "elevation_deg", math.nan), "elevation_text": _field(1, "elevation_deg", "abc"),
@@ -132,6 +143,8 @@ def process_cases() -> list[Case]:
     raw = {"not_utf8": b'{"file": "raw/\xff.dng"}\n', "nested_100k": nested().encode() + b"\n",
            "truncated_line": b'{"file": "raw/e0_a000.dng", "sha2', "binary": bytes(range(256))}
     cases += [Case("process", f"manifest_{name}", manifest_case(data=data), "manifest.jsonl") for name, data in raw.items()]
+    cases.append(Case("process", "raws_not_raw", manifest_case(lambda lines: None), "e0_a000.dng"))  # checksums match
+    cases.append(Case("process", "raws_empty", _emptied_raws, "e0_a000.dng"))
     return cases
 
 
