@@ -153,6 +153,22 @@ def posed_file_case(rel: str, spoil: Callable[[Path, Path], None], command: str 
     return build
 
 
+def interrupted_train_case(spoil: Callable[[Path, Path], None]) -> Builder:
+    """A train run killed mid-way (its record says started, under the key `station train` computes now),
+    leaving the checkpoint `spoil` writes in its fresh model folder: the one a resumed run loads."""
+    def build(case: Path, outside: Path, bases: Bases) -> list[str]:
+        from station.pipeline import output_digest, scan_stage_key, spec, write_started
+        from station.scanfolder import ScanFolder
+
+        copy_base(bases.posed, case)
+        scan, stage = ScanFolder(case), spec("train")
+        upstream = {name: output_digest(scan, spec(name)) for name in stage.reads}
+        write_started(scan, "train", scan_stage_key(scan, stage, {"method": "ngs", "preset": "fast"}, upstream))
+        spoil(case / ".model.new" / "checkpoint.pt", outside)
+        return ["train", str(case)]
+    return build
+
+
 def _resized(path: Path, _: Path) -> None:
     Image.new("RGB", (17, 9)).save(path)
 
@@ -242,16 +258,15 @@ def train_cases() -> list[Case]:
         Case("train", "mask_huge_header", posed_file_case("masks/f02.png", lambda p, _: huge_png(p, 40000, 40000)), "f02.png"),
         Case("train", "cloud_garbage", posed_file_case("poses/cloud.ply", garbage_of()), "cloud.ply"),
     ]
-    ckpt = "model/checkpoint.pt"
-    cases += [Case("train", f"checkpoint_{name}", posed_file_case(ckpt, torch_file_then(_checkpoint_like(), spoil)),
+    cases += [Case("train", f"checkpoint_{name}", interrupted_train_case(torch_file_then(_checkpoint_like(), spoil)),
                    "checkpoint.pt") for name, spoil in MODEL_FILE_BAD.items()]
     wrong = {"list": [1, 2, 3], "no_model": {k: v for k, v in _checkpoint_like().items() if k != "model"},
              "step_text": {**_checkpoint_like(), "step": "5"},
              "model_shapes": {**_checkpoint_like(), "model": {**_checkpoint_like()["model"], "quats": torch.zeros(3, 4)}},
              "generator_bytes": {**_checkpoint_like(), "generator": torch.zeros(4, dtype=torch.uint8)}}
-    cases += [Case("train", f"checkpoint_{name}", posed_file_case(ckpt, torch_file(obj)), "checkpoint.pt")
+    cases += [Case("train", f"checkpoint_{name}", interrupted_train_case(torch_file(obj)), "checkpoint.pt")
               for name, obj in wrong.items()]
-    cases.append(Case("train", "checkpoint_pickled_class", posed_file_case(ckpt, _pickled_code), "checkpoint.pt"))
+    cases.append(Case("train", "checkpoint_pickled_class", interrupted_train_case(_pickled_code), "checkpoint.pt"))
     return cases
 
 
