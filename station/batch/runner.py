@@ -286,7 +286,7 @@ class JobRun:
             self.store.log_stage(self.job.id, spec.name, key, "failed", {"kind": "disk_full", "message": str(exc)})
             return Outcome("disk_full", str(exc))
         write_started(self.scan, spec.name, key)
-        where: dict[str, str] = {}
+        where: dict[str, str] = {"worker": self.worker}
 
         def placed(node: str) -> None:
             where["node"] = node
