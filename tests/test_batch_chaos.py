@@ -215,7 +215,9 @@ def test_a_stalled_runners_stage_stops_itself_and_the_runner_records_nothing_whe
     while runner_a.poll() is None and not any(e["stage"] == "train" for e in store.stage_events(job.id)):
         helpers = _descendants(runner_a.pid)  # the forkserver and resource tracker, before the stage starts
         time.sleep(0.02)
-    stage = _descendants(runner_a.pid) - helpers
+    deadline = time.monotonic() + 60
+    while not (stage := _alive(_descendants(runner_a.pid) - helpers)) and time.monotonic() < deadline:
+        time.sleep(0.01)  # the stage process is forked just after its `started` line
     os.kill(runner_a.pid, signal.SIGSTOP)
     try:
         deadline = time.monotonic() + 60
@@ -226,6 +228,9 @@ def test_a_stalled_runners_stage_stops_itself_and_the_runner_records_nothing_whe
         with open(tmp_path / "b.log", "wb") as sink:
             runner_b = subprocess.run(run, stdout=sink, stderr=sink, timeout=400)
         assert runner_b.returncode in (0, 1) and store.get(scan).state == "done", (tmp_path / "b.log").read_text()[-3000:]
+    except BaseException:
+        runner_a.kill()
+        raise
     finally:
         os.kill(runner_a.pid, signal.SIGCONT)
     assert runner_a.wait(timeout=120) in (0, 1), (tmp_path / "a.log").read_text()[-3000:]  # 1: quarantined

@@ -156,7 +156,8 @@ def test_the_store_and_the_summary_name_each_stages_node(runs, cluster):
         assert {_node_of(entry.split()[0]) for entries in row["nodes"].values() for entry in entries} <= cluster["labels"]
     failures = [f for row in summary["scans"] for f in row["failures"]]
     assert len(failures) == 1 and failures[0].startswith("train (lost: infrastructure") and faulty["killed"] in failures[0]
-    assert "(lost)" in faulty["stderr"]  # the printed summary says where each attempt ran
+    printed = batch("summary", "--queue", faulty["queue"])  # the summary as the operator reads it
+    assert printed.returncode == 0 and "(lost)" in printed.stderr and f"{faulty['killed']} (lost), then" in printed.stderr
 
 
 def test_ray_writes_to_its_log_beside_the_queue_not_to_the_terminal(runs):
