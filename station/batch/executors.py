@@ -71,18 +71,25 @@ def _exit_when_orphaned(alive: Connection) -> None:
     os._exit(ORPHANED_EXIT)
 
 
+def lease_running_out(attempt: Attempt, store: JobStore) -> bool:
+    """True once the claim the stage runs under is gone or has less than its margin left."""
+    try:
+        left = store.lease_left(attempt.job, attempt.worker, attempt.fence)
+    except sqlite3.OperationalError:  # store busy: look again at the next tick
+        return False
+    return left is None or left < attempt.lease_seconds * LEASE_MARGIN
+
+
+def attempt_store(attempt: Attempt) -> JobStore:
+    return JobStore(attempt.store, StoreConfig(lease_seconds=attempt.lease_seconds))
+
+
 def _exit_when_fenced(attempt: Attempt) -> None:
     """Stop the stage before its runner's lease can run out: a stalled runner's stage must not write on."""
-    store = JobStore(attempt.store, StoreConfig(lease_seconds=attempt.lease_seconds))
-    margin = attempt.lease_seconds * LEASE_MARGIN
-    while True:
-        try:
-            left = store.lease_left(attempt.job, attempt.worker, attempt.fence)
-        except sqlite3.OperationalError:  # store busy: look again at the next tick
-            left = margin + 1
-        if left is None or left < margin:
-            os._exit(FENCED_EXIT)
-        time.sleep(margin / 2)
+    store = attempt_store(attempt)
+    while not lease_running_out(attempt, store):
+        time.sleep(attempt.lease_seconds * LEASE_MARGIN / 2)
+    os._exit(FENCED_EXIT)
 
 
 def _stage_main(call: StageCall, attempt: Attempt, result: Connection, alive: Connection) -> None:

@@ -13,7 +13,8 @@ itself met comes back as its own Outcome).
 Ray's driver lives in a child process whose stdout and stderr go to a log file beside the
 queue: Ray prints raylet and worker messages to the driver's own stdout (whatever
 `log_to_driver` says), and the operator's terminal gets the station's lines only. The child
-exits when the runner dies, and Ray then ends the stages it owned.
+exits when the runner dies, and Ray then ends the stages it owned; it also cancels a stage
+whose runner stalled (its lease in the store running out), as a local stage process does.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from multiprocessing.connection import Client, Connection, Listener
 from pathlib import Path
 from typing import Any
 
-from station.batch.executors import Attempt, Placed
+from station.batch.executors import Attempt, Placed, attempt_store, lease_running_out
 from station.batch.stage_run import Outcome, StageCall, execute_stage
 from station.errors import BadInputError, StationError
 from station.scanfolder import ScanFolder, sha256_file
@@ -175,8 +176,9 @@ class _Driver:
     def serve(self, conn: Connection) -> None:
         """One stage, start to end, for one runner slot on the other end of `conn`."""
         with conn:
-            call, avoid = conn.recv()
-            node, refused = self.place(call, frozenset(avoid))
+            call, attempt = conn.recv()
+            store = attempt_store(attempt)
+            node, refused = self.place(call, attempt.avoid)
             if node is None:
                 conn.send(("outcome", Outcome("bad_input", _unseen(call.scan, refused))))
                 return
@@ -191,6 +193,10 @@ class _Driver:
                     if conn.poll():  # "cancel", or the runner's end closed
                         self.ray.cancel(ref, force=True)
                         conn.send(("outcome", Outcome("cancelled", f"{call.stage} stopped by the runner")))
+                        return
+                    if lease_running_out(attempt, store):  # the runner stalled: its stage must not run on
+                        self.ray.cancel(ref, force=True)
+                        conn.send(("outcome", Outcome("cancelled", f"{call.stage} stopped: the runner's lease ran out")))
                         return
             except (EOFError, OSError):
                 return
@@ -292,7 +298,7 @@ class RayExecutor:
         deadline = time.monotonic() + call.seconds
         try:
             with Client(self.address, authkey=self.key) as conn:
-                conn.send((call, sorted(attempt.avoid)))
+                conn.send((call, attempt))
                 while True:
                     if conn.poll(POLL_SECONDS):
                         message = conn.recv()

@@ -117,12 +117,12 @@ def print_summary(summary: Summary, console: Console) -> None:
     console.print(table)
     used = {entry.rsplit(" ", 1)[0] for row in summary.rows for entries in row.nodes.values() for entry in entries}
     for row in summary.rows:
-        if row.reason:
-            console.print(f"{row.name}: {row.reason}", highlight=False, markup=False)
-        for failure in row.failures:
-            console.print(f"{row.name}: {failure}", highlight=False, markup=False)
+        lines = [f"{row.name}: {row.reason}"] if row.reason else []
+        lines += [f"{row.name}: {failure}" for failure in row.failures]
         if row.nodes and (len(used) > 1 or row.failures):  # one machine: where is no news
-            console.print(f"{row.name} ran on: {where(row)}", highlight=False, markup=False)
+            lines.append(f"{row.name} ran on: {where(row)}")
+        for line in lines:  # one line each, however long: grep and copy work on it
+            console.print(line, highlight=False, markup=False, soft_wrap=True)
 
 
 def where(row: ScanRow) -> str:
