@@ -13,7 +13,9 @@ import json
 import os
 import secrets
 import shutil
+import signal
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -39,10 +41,9 @@ def shot(tmp_path_factory) -> list[Path]:
 
 
 @pytest.fixture(scope="module")
-def cluster():
-    """A head and two 1-CPU worker nodes with token auth; Ray's files under a short private temp dir."""
+def ray_env():
+    """Token auth on, with a fresh token, and Ray's files under a short private temp dir."""
     from ray._raylet import AuthenticationTokenLoader, Config
-    from ray.cluster_utils import Cluster
 
     tmp = tempfile.mkdtemp(prefix="ray-", dir="/tmp")  # Ray's unix sockets live here: the path must be short
     env = {"RAY_TMPDIR": tmp, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
@@ -51,14 +52,22 @@ def cluster():
             patch.setenv(name, value)
         Config.initialize("")  # as Ray's own token set-up does: this process reads the mode and token again
         AuthenticationTokenLoader.instance().reset_cache()
-        ray_cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
-        workers = [ray_cluster.add_node(num_cpus=1) for _ in range(2)]
-        try:
-            yield {"cluster": ray_cluster, "workers": workers, "env": env,
-                   "labels": {n.node_id[:12] for n in [ray_cluster.head_node, *workers]}}
-        finally:
-            ray_cluster.shutdown()
-            shutil.rmtree(tmp, ignore_errors=True)
+        yield env
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def cluster(ray_env):
+    """A head and two 1-CPU worker nodes."""
+    from ray.cluster_utils import Cluster
+
+    ray_cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    workers = [ray_cluster.add_node(num_cpus=1) for _ in range(2)]
+    try:
+        yield {"cluster": ray_cluster, "workers": workers, "env": ray_env,
+               "labels": {n.node_id[:12] for n in [ray_cluster.head_node, *workers]}}
+    finally:
+        ray_cluster.shutdown()
 
 
 def _node_of(label: str) -> str:
@@ -186,3 +195,37 @@ def test_training_prefers_a_gpu_node_and_the_other_stages_keep_off_it():
     assert choose_nodes(nodes, "process", {cpu_a.id: 1}, frozenset())[0] == cpu_b  # spread: the least busy first
     assert choose_nodes(nodes, "train", {}, frozenset({gpu.label}))[-1] == gpu  # lost there: last resort only
     assert choose_nodes([Node("d" * 56, "10.0.0.4", 0, 0)], "export", {}, frozenset()) == []  # no CPU: never
+
+
+def test_a_node_that_cannot_see_the_scan_folder_gets_no_stage_and_is_named(ray_env, shot, tmp_path):
+    """A worker node in its own mount namespace, with the scans' folder hidden under an empty tmpfs:
+    as a node without the shared storage mounted. The head has no CPU, so it is the only candidate."""
+    from ray.cluster_utils import Cluster
+
+    hidden = tmp_path / "scans"
+    if subprocess.run(["unshare", "--mount", "true"], capture_output=True).returncode != 0:
+        pytest.skip("unshare --mount is not permitted here (needs root or user namespaces)")
+    scan = copy_scans(shot[:1], hidden)[0]
+    head = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False})
+    ray_start = Path(sys.executable).with_name("ray")
+    blind_node = (f"mount -t tmpfs none {hidden} && exec {ray_start} start --address={head.address} --num-cpus=1 "
+                  "--block --dashboard-agent-listen-port=0 --metrics-export-port=0 --disable-usage-stats")
+    with open(tmp_path / "node.log", "wb") as sink:
+        node = subprocess.Popen(["unshare", "--mount", "--propagation", "private", "sh", "-c", blind_node],
+                                stdout=sink, stderr=sink, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while sum(n["Alive"] for n in head.global_state.node_table()) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        queue = tmp_path / "queue.sqlite"
+        assert batch("add", scan, "--queue", queue).returncode == 0
+        result = batch("run", *RUN, "--ray-address", head.address, "--queue", queue, env=ray_env)
+    finally:
+        os.killpg(node.pid, signal.SIGKILL)
+        node.wait()
+        head.shutdown()
+    job = status(queue)[scan.name]
+    assert job["state"] == "parked" and job["stage"] == "process", result.stderr[-3000:]
+    assert "no node of the Ray cluster sees this scan folder" in job["reason"] and "cannot see it" in job["reason"]
+    assert "parked" in result.stderr and "cannot see it" in result.stderr  # and the runner's log says so at once
+    assert not (scan / "images").exists()  # no stage ran anywhere
