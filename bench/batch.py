@@ -113,6 +113,7 @@ def run_on_cluster(scans: list[Path], workdir: Path, nodes: int, preset: str) ->
         command = [sys.executable, "-m", "station.cli_batch", "run", "--executor", "ray", "--ray-address",
                    cluster.address, "--workers", str(nodes), "--threads", "1", "--preset", preset, "--poll", "0.2",
                    "--queue", str(queue)]
+        load = os.getloadavg()[0]
         started = time.perf_counter()
         result = subprocess.run(command, capture_output=True, text=True)
         wall = time.perf_counter() - started
@@ -132,6 +133,7 @@ def run_on_cluster(scans: list[Path], workdir: Path, nodes: int, preset: str) ->
         "stage_s": {stage: round(statistics.mean(d["seconds"] for s, d in finished if s == stage), 2)
                     for stage in STAGE_NAMES},
         "nodes_used": len({d["node"] for _, d in finished}),
+        "load_avg_1min": {"start": round(load, 2), "end": round(os.getloadavg()[0], 2)},
         "verdicts": sorted(str(job.verdict) for job in jobs),
     }
 
@@ -146,7 +148,7 @@ def default_scan_stage_times() -> dict:
     return {
         "process_s": round(process["scan"]["develop_and_mask_s"] + rig_240, 1),
         "train_s": ngs["methods"]["ngs"]["train_seconds"],
-        "export_s": mesh["methods"]["opacity"]["seconds"],
+        "export_s": round(mesh["methods"]["opacity"]["seconds"], 1),
         "sources": {
             "process_s": "process.json: develop and mask of a 6x40 scan at 480x360, plus posing 240 views (rig)",
             "train_s": f"ngs_presets.json: NGS, preset fast, {ngs['scan']}, {ngs['threads']} threads",
@@ -197,11 +199,13 @@ def bench_nodes(counts: list[int], scans: int, preset: str, night_scans: int = 4
                   "hours": projection(times, night_scans, gpu_speedup)},
     }
     table = Table(title=f"station batch on Ray, {scans} tiny scans, 1-CPU nodes on one {os.cpu_count()}-core machine")
-    for column in ("nodes", "wall s", "scans/hour", "in stage s (" + " / ".join(STAGE_NAMES) + ")", "nodes used"):
+    for column in ("nodes", "wall s", "scans/hour", "in stage s (" + " / ".join(STAGE_NAMES) + ")", "nodes used",
+                   "load (1 min) start / end"):
         table.add_column(column)
     for row in rows:
         table.add_row(str(row["nodes"]), str(row["wall_s"]), str(row["scans_per_hour"]),
-                      " / ".join(str(row["stage_s"][s]) for s in STAGE_NAMES), str(row["nodes_used"]))
+                      " / ".join(str(row["stage_s"][s]) for s in STAGE_NAMES), str(row["nodes_used"]),
+                      f"{row['load_avg_1min']['start']} / {row['load_avg_1min']['end']}")
     night = Table(title=f"on paper: {night_scans} default scans (process {times['process_s']} s, train "
                         f"{times['train_s']} s, export {times['export_s']} s a scan; GPU {gpu_speedup:g}x assumed)")
     for column in ("nodes (2 cores each)", "of them GPU", "hours"):

@@ -297,7 +297,7 @@ class JobRun:
         outcome = self.executor.run(call, self.lease.cancel, self.lease.attempt(avoid), placed)
         # the fence check: a runner that stalled past its lease records nothing, least of all a DONE record
         if outcome.kind == "cancelled" or self.lease.cancel.is_set() or not self.lease.holds():
-            why = "lease lost" if self.lease.lost else "runner stopping"
+            why = "lease lost" if self.lease.lost else ("runner stopping" if self.lease.stop.is_set() else outcome.message)
             self.store.log_stage(self.job.id, spec.name, key, "abandoned", {"why": why, **where})
             raise JobAbandoned(why)
         if outcome.ok:
