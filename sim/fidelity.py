@@ -26,7 +26,7 @@ import numpy as np
 from sim.sensor import SRGB_TO_XYZ
 from sim.truth import TruthImage, true_images_at
 from station.errors import BadInputError
-from station.process.images_io import linear_to_srgb, read_png16, srgb_to_linear
+from station.process.images_io import linear_to_srgb, read_png16
 from station.scanfolder import ScanFolder
 
 with warnings.catch_warnings():
