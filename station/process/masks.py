@@ -589,24 +589,28 @@ def unmix(shot: np.ndarray, background: np.ndarray, alpha: np.ndarray, settings:
     pixels nearby (mean and spread, per channel), so the less of a pixel the stone covers the more its colour
     is the stone's nearby one (the maximum a posteriori estimate of Bayesian matting with the coverage known).
     """
+    colour = shot.astype(np.float32)
     partial = (alpha > 0.0) & (alpha < 1.0)
     if not partial.any():
-        return shot.astype(np.float32)
+        return colour
     solid = alpha >= 1.0
-    prior, spread, weight = nearby_stone_colour(shot, solid, settings.edge_colour_px)
     fallback = shot[solid if solid.any() else partial].mean(axis=0)  # a stone with no solid pixel near
-    known = (weight > 1e-3)[..., None]
-    prior = np.where(known, prior, fallback)
-    floor = settings.edge_colour_floor * np.maximum(prior, _LOG_FLOOR)
-    prior_var = np.where(known, spread, 0.0) + floor**2
     border = _border(shot.shape[:2], settings.border_fraction)
     log_ratio = np.log(np.maximum(shot, _LOG_FLOOR)) - np.log(np.maximum(background, _LOG_FLOOR))
     sigma, _ = _noise_sigma(log_ratio, np.maximum(background, _LOG_FLOOR), border)
-    mix_var = (sigma**2 + settings.shadow_slack**2) * np.maximum(background, _LOG_FLOOR) ** 2
-    a = alpha[..., None]
-    residual = shot - (1.0 - a) * background  # a F plus noise
+    ys, xs = np.nonzero(partial)
+    pad = int(np.ceil(3 * settings.edge_colour_px)) + 1
+    box = (slice(max(0, ys.min() - pad), ys.max() + pad + 1), slice(max(0, xs.min() - pad), xs.max() + pad + 1))
+    c, b, a = shot[box], background[box], alpha[box][..., None]
+    prior, spread, weight = nearby_stone_colour(c, solid[box], settings.edge_colour_px)
+    known = (weight > 1e-3)[..., None]
+    prior = np.where(known, prior, fallback)
+    prior_var = np.where(known, spread, 0.0) + (settings.edge_colour_floor * np.maximum(prior, _LOG_FLOOR)) ** 2
+    mix_var = (sigma[box] ** 2 + settings.shadow_slack**2) * np.maximum(b, _LOG_FLOOR) ** 2
+    residual = c - (1.0 - a) * b  # a F plus noise
     estimate = (a * residual / mix_var + prior / prior_var) / (a * a / mix_var + 1.0 / prior_var)
-    return np.where(partial[..., None], np.maximum(estimate, 0.0), shot).astype(np.float32)
+    colour[box] = np.where(partial[box][..., None], np.maximum(estimate, 0.0), c)
+    return colour
 
 
 def compute_mask(
