@@ -56,15 +56,15 @@ def _trained_view(spec: str, elevation: float, azimuth: float, folder: Path) -> 
     sensor = SensorModel()
     world = World(make_stone(spec), rig=RigGeometry().scaled(640, 480))
     rng = np.random.default_rng(3)
-    developed, truth = [], None
+    developed, truths = [], []
     for present in (True, False):
         out = render(world, elevation, azimuth, stone_present=present)
         path = folder / f"{'shot' if present else 'plate'}.dng"
         path.write_bytes(dng_bytes(sensor.expose(out.radiance, 1 / 30, 100, rng), sensor))
         developed.append(develop_raw(path, DevelopSettings()).linear)
-        truth = truth or TruthImage.of(out, sensor).downscaled(320)
+        truths.append(TruthImage.of(out, sensor).downscaled(320))
     matte = compute_matte(*developed).downscaled(320)
-    return matte.foreground, matte.alpha, truth
+    return matte.foreground, matte.alpha, truths[0]
 
 
 @pytest.mark.slow
