@@ -5,8 +5,8 @@ every frame to a common exposure, optionally corrects colour against a chart see
 and writes images/<stem>.png (16-bit sRGB), images_linear/<stem>.exr (half linear, the shot as
 developed; plates too, so the masks can be cut again after posing) and masks/<stem>.png for every
 shot. The mask holds the stone's coverage (255 inside, fractions on its edge), and images/ hold the
-stone's own colour on those edge pixels, unmixed from the plate (masks.Matte): an image times its
-mask is the stone alone on black, the form training matches. The matte is cut at the developed
+stone's own colour on those edge pixels, unmixed from the plate with the stone beside them as a prior
+(masks.unmix): an image times its mask is the stone alone on black, the form training matches. The matte is cut at the developed
 resolution and, when `ProcessSettings.training_width` is narrower, area-averaged down to it for
 images/ and masks/ (images_linear/ stays as developed): a camera finer than the training images
 gives masks finer than one training pixel. Frames that cannot be used are not fatal: each frame's
