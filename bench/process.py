@@ -1,4 +1,4 @@
-"""Process benchmark: develop speed against rawpy's own default, and posing time and error against views.
+"""Process benchmark: develop speed against rawpy, posing error against views, training views against the truth.
 
 (a) Develop: seconds per megapixel of `develop_raw` (LibRaw AHD, linear 16-bit, colour matrix, stats)
     against rawpy's default `postprocess()` (AHD, 8-bit sRGB, auto-bright) on the same file, in the
