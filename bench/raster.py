@@ -1,12 +1,14 @@
 """Benchmark of the CPU rasteriser: one full training step and forward-only render, on the scene of
-docs/cpu-rasterizer.md. Prints a table and writes bench/results/raster.json.
+docs/cpu-rasterizer.md. Prints two tables and writes bench/results/raster.json.
 
     python bench/raster.py            # headline configs, sweeps at reduced range (~2-3 min)
     python bench/raster.py --full     # sweeps 10k..400k Gaussians and 128^2..1024^2
 
 A step = projection + SH + binning + forward + L1 loss + backward to every parameter (no optimiser).
 Times are medians of wall-clock; CPU time (both threads) is reported beside them because a shared
-machine inflates wall time.
+machine inflates wall time. The breakdown times each phase's kernels alone (forward and backward
+together), the trainer's Adam step beside them, and fits every phase's CPU time over the Gaussian-count
+sweep as fixed ms + us per Gaussian, so each part of the step's cost has an owner.
 """
 
 from __future__ import annotations
@@ -26,11 +28,14 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numba  # noqa: E402
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from station.ngs import _kernels, _project_kernels  # noqa: E402
 from station.ngs.conventions import rgb_to_sh  # noqa: E402
-from station.ngs.raster import rasterization, set_num_threads  # noqa: E402
+from station.ngs.raster import _validate, rasterization, set_num_threads  # noqa: E402
+from station.ngs.raster_reference import camera_centres  # noqa: E402
 
 REFERENCE_LIMIT = 2_000 * 128 * 128  # Gaussians x pixels beyond which the dense reference is skipped
 
@@ -91,13 +96,93 @@ def measure(n: int, width: int, height: int, sh_degree: int, threads: int, repea
 
     step_ms, step_cpu_ms = _timed(step, repeats)
     forward_ms, _ = _timed(forward, repeats)
+    parts = breakdown(scene, params, (step_ms, step_cpu_ms), repeats)
     reference_ms = None
     if n * width * height <= REFERENCE_LIMIT:
         reference_ms, _ = _timed(lambda: step("torch"), max(1, repeats // 3))
     return {"gaussians": n, "width": width, "height": height, "sh_degree": sh_degree, "threads": threads,
             "step_ms": round(step_ms, 2), "step_cpu_ms": round(step_cpu_ms, 2), "forward_ms": round(forward_ms, 2),
             "reference_step_ms": None if reference_ms is None else round(reference_ms, 2),
-            "speedup_vs_reference": None if reference_ms is None else round(reference_ms / step_ms, 1)}
+            "speedup_vs_reference": None if reference_ms is None else round(reference_ms / step_ms, 1),
+            "intersections": parts.pop("intersections"), "breakdown": parts}
+
+
+PHASES = ("checks", "projection", "sh", "binning_and_sort", "raster_forward", "raster_backward", "torch_glue",
+          "optimizer")
+
+
+def breakdown(scene: dict, params: list[torch.Tensor], step_times: tuple[float, float], repeats: int) -> dict:
+    """Median wall and CPU ms of each phase of a step, run alone on the step's own inputs. torch_glue is the
+    step's remainder (activations, autograd, loss, tensor<->array copies); optimizer is the trainer's
+    per-parameter Adam, which is not part of `step_ms`."""
+    w, h, deg = scene["width"], scene["height"], scene["sh_degree"]
+    means, log_scales, quats, logits, sh = (p.detach() for p in params)
+    scales, opac = log_scales.exp(), torch.sigmoid(logits)
+    gauss = [t.contiguous().numpy() for t in (means, quats, scales)]
+    coeffs = sh.contiguous().numpy()
+    no_sh = coeffs[:, :1]
+    cams = [t.contiguous().numpy() for t in (scene["viewmats"], scene["Ks"], camera_centres(scene["viewmats"]))]
+    op = opac.numpy()
+    rng = torch.Generator().manual_seed(1)
+
+    def upstream(shape):
+        return (0.01 * torch.randn(shape, generator=rng)).numpy()
+
+    def project(degree: int, k: np.ndarray) -> None:
+        out = _project_kernels.project_fwd(*gauss, k, degree, *cams, w, h, 0.01, 1e10)
+        grads = [upstream(a.shape) for a in (out[0], out[1], out[2], out[4])]
+        _project_kernels.project_bwd(*gauss, k, degree, *cams, w, h, out[3], out[4], *grads)
+
+    m2, conics, depths, radii, colors = _project_kernels.project_fwd(*gauss, coeffs, deg, *cams, w, h, 0.01, 1e10)
+    m2, conics, depths, radii, colors = m2[0], conics[0], depths[0], radii[0], colors[0]
+    bins = _kernels.bin_gaussians(m2, conics, op, radii, depths, w, h)
+    img, t_final, n_proc = _kernels.rasterize_fwd(m2, conics, colors, op, bins[0], bins[1], bins[4], w, h, True)
+    g_img, g_alpha, bg = upstream(img.shape), np.zeros((h, w), np.float32), np.zeros(3, np.float32)
+
+    def backward() -> None:
+        slots = _kernels.rasterize_bwd(m2, conics, colors, op, bg, bins[0], bins[1], bins[4], w, h, img, t_final,
+                                       n_proc, g_img, g_alpha, True)
+        _kernels.reduce_per_gaussian(slots, bins[2], bins[3])
+
+    for p in params:
+        p.grad = torch.zeros_like(p)
+    optimizers = [torch.optim.Adam([p], lr=1e-3, eps=1e-15) for p in params]  # as station/ngs/trainer.py
+
+    def adam() -> None:
+        for opt in optimizers:
+            opt.step()
+
+    timed = {
+        "checks": _timed(lambda: _validate(means, quats, scales, opac, sh, scene["viewmats"], scene["Ks"], w, h, deg,
+                                           None), repeats),
+        "projection": _timed(lambda: project(-1, no_sh), repeats),
+        "projection_sh": _timed(lambda: project(deg, coeffs), repeats),
+        "binning_and_sort": _timed(lambda: _kernels.bin_gaussians(m2, conics, op, radii, depths, w, h), repeats),
+        "raster_forward": _timed(lambda: _kernels.rasterize_fwd(m2, conics, colors, op, bins[0], bins[1], bins[4], w,
+                                                                h, True), repeats),
+        "raster_backward": _timed(backward, repeats),
+        "optimizer": _timed(adam, repeats),
+    }
+    with_sh = timed.pop("projection_sh")
+    timed["sh"] = (max(with_sh[0] - timed["projection"][0], 0.0), max(with_sh[1] - timed["projection"][1], 0.0))
+    inside = [timed[k] for k in PHASES if k not in ("torch_glue", "optimizer")]
+    timed["torch_glue"] = (max(step_times[0] - sum(t[0] for t in inside), 0.0),
+                           max(step_times[1] - sum(t[1] for t in inside), 0.0))
+    for p in params:
+        p.grad = None
+    return {k: {"wall_ms": round(timed[k][0], 2), "cpu_ms": round(timed[k][1], 2)} for k in PHASES} | {
+        "intersections": int(bins[1].shape[0])}
+
+
+def fit_per_gaussian(rows: list[dict]) -> dict:
+    """Least-squares CPU ms = fixed + per-Gaussian slope, per phase, over rows at one image size."""
+    n = np.array([r["gaussians"] for r in rows], float)
+    out = {}
+    for phase in PHASES + ("step",):
+        y = np.array([r["step_cpu_ms"] if phase == "step" else r["breakdown"][phase]["cpu_ms"] for r in rows])
+        slope, fixed = np.polyfit(n, y, 1)
+        out[phase] = {"fixed_cpu_ms": round(float(fixed), 2), "cpu_us_per_gaussian": round(1e3 * float(slope), 4)}
+    return out
 
 
 def cold_start_ms() -> float:
@@ -150,6 +235,17 @@ def main() -> None:
         ratio = "-" if row["speedup_vs_reference"] is None else f"{row['speedup_vs_reference']:.0f}"
         print(f"{n:>9} {w:>4}x{h:<4} {d:>2} {args.threads:>3} {row['step_ms']:>8.1f} {row['step_cpu_ms']:>8.1f} "
               f"{row['forward_ms']:>7.1f} {ref_ms:>8} {ratio:>6}", flush=True)
+    short = {"checks": "chk", "projection": "proj", "sh": "sh", "binning_and_sort": "bin", "raster_forward": "fwd",
+             "raster_backward": "bwd", "torch_glue": "glue", "optimizer": "adam"}
+    print("\nCPU ms per phase (both threads; 'adam' is the optimiser step, outside 'step ms'):")
+    print(f"{'gaussians':>9} {'size':>9} " + " ".join(f"{short[k]:>6}" for k in PHASES) + f" {'isects':>8}")
+    for row in configs:
+        print(f"{row['gaussians']:>9} {row['width']:>4}x{row['height']:<4} "
+              + " ".join(f"{row['breakdown'][k]['cpu_ms']:>6.1f}" for k in PHASES) + f" {row['intersections']:>8}")
+    fit = fit_per_gaussian([r for r in configs if (r["width"], r["height"], r["sh_degree"]) == (256, 256, 3)])
+    print("\nfit over the 256x256 count sweep, CPU: fixed ms + us per Gaussian")
+    for phase, f in fit.items():
+        print(f"{phase:>16} {f['fixed_cpu_ms']:>8.2f} ms {f['cpu_us_per_gaussian']:>8.3f} us")
     cold = cold_start_ms()
     print(f"cold start (fresh process, warm numba cache, import + first 1k render): {cold:.0f} ms")
     peak = step_peak_rss_mb(100_000, 512, 512)
@@ -160,7 +256,7 @@ def main() -> None:
         "threads": args.threads, "torch": torch.__version__, "numba": numba.__version__,
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),  # this whole bench
         "peak_rss_100k_512_mb": peak,
-        "cold_start_ms": cold, "configs": configs,
+        "cold_start_ms": cold, "configs": configs, "fit_256x256_cpu": fit,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
