@@ -100,6 +100,40 @@ def _row_span(my, ext, y0):
     return np.uint64(r0 * TILE), np.uint64(max(r1, r0) * TILE)
 
 
+U8, U63, RADIX_MASK = np.uint64(8), np.uint64(63), np.uint64(255)
+
+
+@njit(cache=True)
+def depth_order(depths):
+    """Stable argsort of depths (ties keep index order, as a stable merge sort): LSD radix sort, 8 bits a pass,
+    on the float64 bits mapped to an order-preserving uint64; passes where every key shares the digit (the
+    low mantissa of float32 depths) are skipped."""
+    n = depths.shape[0]
+    keys = np.empty(n, np.uint64)
+    bits = (depths.astype(np.float64) + 0.0).view(np.uint64)  # + 0.0 makes -0.0 tie with 0.0, as in a sort
+    for i in range(n):
+        b = bits[i]
+        keys[i] = ~b if (b >> U63) != np.uint64(0) else b | (np.uint64(1) << U63)
+    order = np.arange(n)
+    scratch = np.empty(n, np.int64)
+    for pass_ in range(8):
+        shift = np.uint64(pass_) * U8
+        counts = np.zeros(257, np.int64)
+        for i in range(n):
+            counts[((keys[order[i]] >> shift) & RADIX_MASK) + np.uint64(1)] += 1
+        if counts.max() == n:
+            continue
+        for d in range(256):
+            counts[d + 1] += counts[d]
+        for i in range(n):
+            g = order[i]
+            d = (keys[g] >> shift) & RADIX_MASK
+            scratch[counts[d]] = g
+            counts[d] += 1
+        order, scratch = scratch, order
+    return order
+
+
 @njit(parallel=True, cache=True)
 def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     """Per-tile depth-sorted intersection lists -> tile_offsets [T+1], isect_gid [M], gauss_offsets [N+1],
@@ -122,7 +156,7 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     gauss_offsets = np.zeros(n + 1, np.int64)
     gauss_offsets[1:] = np.cumsum(counts)
     m = gauss_offsets[n]
-    order = np.argsort(depths, kind="mergesort")
+    order = depth_order(depths)
     tile_counts = np.zeros(tw * th + 1, np.int64)
     isect_tile = np.empty(m, np.int64)
     for g in prange(n):
