@@ -3,6 +3,7 @@ docs/cpu-rasterizer.md. Prints two tables and writes bench/results/raster.json.
 
     python bench/raster.py            # headline configs, sweeps at reduced range (~2-3 min)
     python bench/raster.py --full     # sweeps 10k..400k Gaussians and 128^2..1024^2
+    python bench/raster.py --against REV   # step time of this tree against git revision REV, A B A B
 
 A step = projection + SH + binning + forward + L1 loss + backward to every parameter (no optimiser).
 Times are medians of wall-clock; CPU time (both threads) is reported beside them because a shared
@@ -24,6 +25,7 @@ import platform  # noqa: E402
 import resource  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -31,7 +33,8 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, os.environ.get("RASTER_BENCH_TREE", str(ROOT)))  # --against points it at an older tree
 from station.ngs import _kernels, _project_kernels  # noqa: E402
 from station.ngs.conventions import rgb_to_sh  # noqa: E402
 from station.ngs.raster import _validate, rasterization, set_num_threads  # noqa: E402
@@ -209,13 +212,86 @@ def step_peak_rss_mb(n: int, width: int, height: int) -> float:
     return round(float(out.stdout.strip().splitlines()[-1]), 1)
 
 
+AB_CONFIGS = ((20_000, 256, 15), (100_000, 512, 5))
+
+
+def step_only(n: int, size: int, repeats: int) -> None:
+    """Print one JSON line: median wall and CPU ms of a training step, for the tree this process imported."""
+    set_num_threads(2)
+    scene = bench_scene(n, size, size)
+    params = [scene[k].clone().requires_grad_(True) for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
+
+    def step() -> None:
+        for p in params:
+            p.grad = None
+        img, _, _ = _render(scene, params, "cpu")
+        (img - scene["target"]).abs().mean().backward()
+
+    wall, cpu = _timed(step, repeats)
+    tree = str(Path(rasterization.__code__.co_filename).resolve().parents[2])
+    print(json.dumps({"step_ms": round(wall, 2), "step_cpu_ms": round(cpu, 2), "tree": tree}))
+
+
+def against(rev: str, rounds: int, out: Path) -> None:
+    """This tree's step against revision `rev`'s, in alternating fresh processes (A B A B) so both see the same
+    machine load; quotes per-config medians and their ratio. Each tree's first process (numba compile) is
+    not counted."""
+    with tempfile.TemporaryDirectory(prefix="raster-ab-") as old:
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", old], input=archive, check=True)
+        trees = {"before": old, "after": str(ROOT)}
+
+        def run(tree: str, n: int, size: int, repeats: int) -> dict:
+            done = subprocess.run([sys.executable, __file__, "--step-only", str(n), str(size), str(repeats)],
+                                  env={**os.environ, "RASTER_BENCH_TREE": tree}, capture_output=True, text=True,
+                                  check=True)
+            return json.loads(done.stdout.strip().splitlines()[-1]) | {"load_1min": round(os.getloadavg()[0], 2)}
+
+        for tree in trees.values():
+            run(tree, 2_000, 128, 1)
+        rows = []
+        print(f"{'gaussians':>9} {'size':>9} {'before cpu':>10} {'after cpu':>10} {'ratio':>6} {'before ms':>10} "
+              f"{'after ms':>9} {'ratio':>6}")
+        for n, size, repeats in AB_CONFIGS:
+            runs = {name: [] for name in trees}
+            for _ in range(rounds):
+                for name, tree in trees.items():
+                    runs[name].append(run(tree, n, size, repeats))
+            med = {(name, key): float(np.median([r[key] for r in runs[name]]))
+                   for name in trees for key in ("step_ms", "step_cpu_ms")}
+            row = {"gaussians": n, "width": size, "height": size, "runs": runs,
+                   "median": {f"{name}_{key}": round(v, 2) for (name, key), v in med.items()},
+                   "cpu_ratio_after_over_before": round(med["after", "step_cpu_ms"] / med["before", "step_cpu_ms"], 3),
+                   "wall_ratio_after_over_before": round(med["after", "step_ms"] / med["before", "step_ms"], 3)}
+            rows.append(row)
+            print(f"{n:>9} {size:>4}x{size:<4} {med['before', 'step_cpu_ms']:>10.1f} "
+                  f"{med['after', 'step_cpu_ms']:>10.1f} {row['cpu_ratio_after_over_before']:>6.2f} "
+                  f"{med['before', 'step_ms']:>10.1f} "
+                  f"{med['after', 'step_ms']:>9.1f} {row['wall_ratio_after_over_before']:>6.2f}", flush=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"before": rev, "after": "working tree", "rounds": rounds, "threads": 2,
+                               "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
+                               "configs": rows}, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="full sweeps (10k..400k, 128^2..1024^2)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "raster.json")
+    parser.add_argument("--out", type=Path, default=None, help="default bench/results/raster.json "
+                        "(raster_ab.json with --against)")
+    parser.add_argument("--against", metavar="REV", help="time this tree's step against git revision REV")
+    parser.add_argument("--rounds", type=int, default=4, help="with --against: A B pairs per config")
+    parser.add_argument("--step-only", nargs=3, type=int, metavar=("N", "SIZE", "REPEATS"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.step_only:
+        return step_only(*args.step_only)
+    results = Path(__file__).parent / "results"
+    if args.against:
+        return against(args.against, args.rounds, args.out or results / "raster_ab.json")
+    args.out = args.out or results / "raster.json"
     set_num_threads(args.threads)
     headline = [(20_000, 256, 256, 3), (100_000, 512, 512, 3), (2_000, 128, 128, 3)]
     counts = [10_000, 20_000, 50_000, 100_000, 200_000, 400_000] if args.full else [10_000, 50_000]
