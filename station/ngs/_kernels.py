@@ -81,8 +81,10 @@ def _sig_max(opacity):
 @njit(cache=True)
 def _y_extent(a, b, c, sig_max):
     """Half-height in pixels of the ellipse sigma <= sig_max, padded for float32 rounding of sigma in the
-    compositing loops; BIG for a conic that is not positive definite."""
+    compositing loops; BIG for a conic that is not positive definite, 0 for a Gaussian never visible."""
     det = a * c - b * b
+    if sig_max < 0.0:
+        return 0.0
     if a <= 0.0 or c <= 0.0 or det <= 0.0:
         return BIG
     return math.sqrt(2.0 * sig_max * a / det) * 1.01 + 0.05
