@@ -1,12 +1,15 @@
 """Benchmark of the CPU rasteriser: one full training step and forward-only render, on the scene of
-docs/cpu-rasterizer.md. Prints a table and writes bench/results/raster.json.
+docs/cpu-rasterizer.md. Prints two tables and writes bench/results/raster.json.
 
     python bench/raster.py            # headline configs, sweeps at reduced range (~2-3 min)
     python bench/raster.py --full     # sweeps 10k..400k Gaussians and 128^2..1024^2
+    python bench/raster.py --against REV   # step time of this tree against git revision REV, A B A B
 
 A step = projection + SH + binning + forward + L1 loss + backward to every parameter (no optimiser).
 Times are medians of wall-clock; CPU time (both threads) is reported beside them because a shared
-machine inflates wall time.
+machine inflates wall time. The breakdown times each phase's kernels alone (forward and backward
+together), the trainer's Adam step beside them, and fits every phase's CPU time over the Gaussian-count
+sweep as fixed ms + us per Gaussian, so each part of the step's cost has an owner.
 """
 
 from __future__ import annotations
@@ -22,15 +25,20 @@ import platform  # noqa: E402
 import resource  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numba  # noqa: E402
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, os.environ.get("RASTER_BENCH_TREE", str(ROOT)))  # --against points it at an older tree
+from station.ngs import _kernels, _project_kernels  # noqa: E402
 from station.ngs.conventions import rgb_to_sh  # noqa: E402
-from station.ngs.raster import rasterization, set_num_threads  # noqa: E402
+from station.ngs.raster import _validate, rasterization, set_num_threads  # noqa: E402
+from station.ngs.raster_reference import camera_centres  # noqa: E402
 
 REFERENCE_LIMIT = 2_000 * 128 * 128  # Gaussians x pixels beyond which the dense reference is skipped
 
@@ -91,13 +99,93 @@ def measure(n: int, width: int, height: int, sh_degree: int, threads: int, repea
 
     step_ms, step_cpu_ms = _timed(step, repeats)
     forward_ms, _ = _timed(forward, repeats)
+    parts = breakdown(scene, params, (step_ms, step_cpu_ms), repeats)
     reference_ms = None
     if n * width * height <= REFERENCE_LIMIT:
         reference_ms, _ = _timed(lambda: step("torch"), max(1, repeats // 3))
     return {"gaussians": n, "width": width, "height": height, "sh_degree": sh_degree, "threads": threads,
             "step_ms": round(step_ms, 2), "step_cpu_ms": round(step_cpu_ms, 2), "forward_ms": round(forward_ms, 2),
             "reference_step_ms": None if reference_ms is None else round(reference_ms, 2),
-            "speedup_vs_reference": None if reference_ms is None else round(reference_ms / step_ms, 1)}
+            "speedup_vs_reference": None if reference_ms is None else round(reference_ms / step_ms, 1),
+            "intersections": parts.pop("intersections"), "breakdown": parts}
+
+
+PHASES = ("checks", "projection", "sh", "binning_and_sort", "raster_forward", "raster_backward", "torch_glue",
+          "optimizer")
+
+
+def breakdown(scene: dict, params: list[torch.Tensor], step_times: tuple[float, float], repeats: int) -> dict:
+    """Median wall and CPU ms of each phase of a step, run alone on the step's own inputs. torch_glue is the
+    step's remainder (activations, autograd, loss, tensor<->array copies); optimizer is the trainer's
+    per-parameter Adam, which is not part of `step_ms`."""
+    w, h, deg = scene["width"], scene["height"], scene["sh_degree"]
+    means, log_scales, quats, logits, sh = (p.detach() for p in params)
+    scales, opac = log_scales.exp(), torch.sigmoid(logits)
+    gauss = [t.contiguous().numpy() for t in (means, quats, scales)]
+    coeffs = sh.contiguous().numpy()
+    no_sh = coeffs[:, :1]
+    cams = [t.contiguous().numpy() for t in (scene["viewmats"], scene["Ks"], camera_centres(scene["viewmats"]))]
+    op = opac.numpy()
+    rng = torch.Generator().manual_seed(1)
+
+    def upstream(shape):
+        return (0.01 * torch.randn(shape, generator=rng)).numpy()
+
+    def project(degree: int, k: np.ndarray) -> None:
+        out = _project_kernels.project_fwd(*gauss, k, degree, *cams, w, h, 0.01, 1e10)
+        grads = [upstream(a.shape) for a in (out[0], out[1], out[2], out[4])]
+        _project_kernels.project_bwd(*gauss, k, degree, *cams, w, h, out[3], out[4], *grads)
+
+    m2, conics, depths, radii, colors = _project_kernels.project_fwd(*gauss, coeffs, deg, *cams, w, h, 0.01, 1e10)
+    m2, conics, depths, radii, colors = m2[0], conics[0], depths[0], radii[0], colors[0]
+    bins = _kernels.bin_gaussians(m2, conics, op, radii, depths, w, h)
+    img, t_final, n_proc = _kernels.rasterize_fwd(m2, conics, colors, op, bins[0], bins[1], bins[4], w, h, True)
+    g_img, g_alpha, bg = upstream(img.shape), np.zeros((h, w), np.float32), np.zeros(3, np.float32)
+
+    def backward() -> None:
+        slots = _kernels.rasterize_bwd(m2, conics, colors, op, bg, bins[0], bins[1], bins[4], w, h, img, t_final,
+                                       n_proc, g_img, g_alpha, True)
+        _kernels.reduce_per_gaussian(slots, bins[2], bins[3])
+
+    for p in params:
+        p.grad = torch.zeros_like(p)
+    optimizers = [torch.optim.Adam([p], lr=1e-3, eps=1e-15) for p in params]  # as station/ngs/trainer.py
+
+    def adam() -> None:
+        for opt in optimizers:
+            opt.step()
+
+    timed = {
+        "checks": _timed(lambda: _validate(means, quats, scales, opac, sh, scene["viewmats"], scene["Ks"], w, h, deg,
+                                           None), repeats),
+        "projection": _timed(lambda: project(-1, no_sh), repeats),
+        "projection_sh": _timed(lambda: project(deg, coeffs), repeats),
+        "binning_and_sort": _timed(lambda: _kernels.bin_gaussians(m2, conics, op, radii, depths, w, h), repeats),
+        "raster_forward": _timed(lambda: _kernels.rasterize_fwd(m2, conics, colors, op, bins[0], bins[1], bins[4], w,
+                                                                h, True), repeats),
+        "raster_backward": _timed(backward, repeats),
+        "optimizer": _timed(adam, repeats),
+    }
+    with_sh = timed.pop("projection_sh")
+    timed["sh"] = (max(with_sh[0] - timed["projection"][0], 0.0), max(with_sh[1] - timed["projection"][1], 0.0))
+    inside = [timed[k] for k in PHASES if k not in ("torch_glue", "optimizer")]
+    timed["torch_glue"] = (max(step_times[0] - sum(t[0] for t in inside), 0.0),
+                           max(step_times[1] - sum(t[1] for t in inside), 0.0))
+    for p in params:
+        p.grad = None
+    return {k: {"wall_ms": round(timed[k][0], 2), "cpu_ms": round(timed[k][1], 2)} for k in PHASES} | {
+        "intersections": int(bins[1].shape[0])}
+
+
+def fit_per_gaussian(rows: list[dict]) -> dict:
+    """Least-squares CPU ms = fixed + per-Gaussian slope, per phase, over rows at one image size."""
+    n = np.array([r["gaussians"] for r in rows], float)
+    out = {}
+    for phase in PHASES + ("step",):
+        y = np.array([r["step_cpu_ms"] if phase == "step" else r["breakdown"][phase]["cpu_ms"] for r in rows])
+        slope, fixed = np.polyfit(n, y, 1)
+        out[phase] = {"fixed_cpu_ms": round(float(fixed), 2), "cpu_us_per_gaussian": round(1e3 * float(slope), 4)}
+    return out
 
 
 def cold_start_ms() -> float:
@@ -124,13 +212,86 @@ def step_peak_rss_mb(n: int, width: int, height: int) -> float:
     return round(float(out.stdout.strip().splitlines()[-1]), 1)
 
 
+AB_CONFIGS = ((20_000, 256, 15), (100_000, 512, 5))
+
+
+def step_only(n: int, size: int, repeats: int) -> None:
+    """Print one JSON line: median wall and CPU ms of a training step, for the tree this process imported."""
+    set_num_threads(2)
+    scene = bench_scene(n, size, size)
+    params = [scene[k].clone().requires_grad_(True) for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
+
+    def step() -> None:
+        for p in params:
+            p.grad = None
+        img, _, _ = _render(scene, params, "cpu")
+        (img - scene["target"]).abs().mean().backward()
+
+    wall, cpu = _timed(step, repeats)
+    tree = str(Path(rasterization.__code__.co_filename).resolve().parents[2])
+    print(json.dumps({"step_ms": round(wall, 2), "step_cpu_ms": round(cpu, 2), "tree": tree}))
+
+
+def against(rev: str, rounds: int, out: Path) -> None:
+    """This tree's step against revision `rev`'s, in alternating fresh processes (A B A B) so both see the same
+    machine load; quotes per-config medians and their ratio. Each tree's first process (numba compile) is
+    not counted."""
+    with tempfile.TemporaryDirectory(prefix="raster-ab-") as old:
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True).stdout
+        subprocess.run(["tar", "-x", "-C", old], input=archive, check=True)
+        trees = {"before": old, "after": str(ROOT)}
+
+        def run(tree: str, n: int, size: int, repeats: int) -> dict:
+            done = subprocess.run([sys.executable, __file__, "--step-only", str(n), str(size), str(repeats)],
+                                  env={**os.environ, "RASTER_BENCH_TREE": tree}, capture_output=True, text=True,
+                                  check=True)
+            return json.loads(done.stdout.strip().splitlines()[-1]) | {"load_1min": round(os.getloadavg()[0], 2)}
+
+        for tree in trees.values():
+            run(tree, 2_000, 128, 1)
+        rows = []
+        print(f"{'gaussians':>9} {'size':>9} {'before cpu':>10} {'after cpu':>10} {'ratio':>6} {'before ms':>10} "
+              f"{'after ms':>9} {'ratio':>6}")
+        for n, size, repeats in AB_CONFIGS:
+            runs = {name: [] for name in trees}
+            for _ in range(rounds):
+                for name, tree in trees.items():
+                    runs[name].append(run(tree, n, size, repeats))
+            med = {(name, key): float(np.median([r[key] for r in runs[name]]))
+                   for name in trees for key in ("step_ms", "step_cpu_ms")}
+            row = {"gaussians": n, "width": size, "height": size, "runs": runs,
+                   "median": {f"{name}_{key}": round(v, 2) for (name, key), v in med.items()},
+                   "cpu_ratio_after_over_before": round(med["after", "step_cpu_ms"] / med["before", "step_cpu_ms"], 3),
+                   "wall_ratio_after_over_before": round(med["after", "step_ms"] / med["before", "step_ms"], 3)}
+            rows.append(row)
+            print(f"{n:>9} {size:>4}x{size:<4} {med['before', 'step_cpu_ms']:>10.1f} "
+                  f"{med['after', 'step_cpu_ms']:>10.1f} {row['cpu_ratio_after_over_before']:>6.2f} "
+                  f"{med['before', 'step_ms']:>10.1f} "
+                  f"{med['after', 'step_ms']:>9.1f} {row['wall_ratio_after_over_before']:>6.2f}", flush=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"before": rev, "after": "working tree", "rounds": rounds, "threads": 2,
+                               "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
+                               "configs": rows}, indent=2) + "\n")
+    print(f"wrote {out}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="full sweeps (10k..400k, 128^2..1024^2)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "raster.json")
+    parser.add_argument("--out", type=Path, default=None, help="default bench/results/raster.json "
+                        "(raster_ab.json with --against)")
+    parser.add_argument("--against", metavar="REV", help="time this tree's step against git revision REV")
+    parser.add_argument("--rounds", type=int, default=4, help="with --against: A B pairs per config")
+    parser.add_argument("--step-only", nargs=3, type=int, metavar=("N", "SIZE", "REPEATS"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.step_only:
+        return step_only(*args.step_only)
+    results = Path(__file__).parent / "results"
+    if args.against:
+        return against(args.against, args.rounds, args.out or results / "raster_ab.json")
+    args.out = args.out or results / "raster.json"
     set_num_threads(args.threads)
     headline = [(20_000, 256, 256, 3), (100_000, 512, 512, 3), (2_000, 128, 128, 3)]
     counts = [10_000, 20_000, 50_000, 100_000, 200_000, 400_000] if args.full else [10_000, 50_000]
@@ -150,6 +311,17 @@ def main() -> None:
         ratio = "-" if row["speedup_vs_reference"] is None else f"{row['speedup_vs_reference']:.0f}"
         print(f"{n:>9} {w:>4}x{h:<4} {d:>2} {args.threads:>3} {row['step_ms']:>8.1f} {row['step_cpu_ms']:>8.1f} "
               f"{row['forward_ms']:>7.1f} {ref_ms:>8} {ratio:>6}", flush=True)
+    short = {"checks": "chk", "projection": "proj", "sh": "sh", "binning_and_sort": "bin", "raster_forward": "fwd",
+             "raster_backward": "bwd", "torch_glue": "glue", "optimizer": "adam"}
+    print("\nCPU ms per phase (both threads; 'adam' is the optimiser step, outside 'step ms'):")
+    print(f"{'gaussians':>9} {'size':>9} " + " ".join(f"{short[k]:>6}" for k in PHASES) + f" {'isects':>8}")
+    for row in configs:
+        print(f"{row['gaussians']:>9} {row['width']:>4}x{row['height']:<4} "
+              + " ".join(f"{row['breakdown'][k]['cpu_ms']:>6.1f}" for k in PHASES) + f" {row['intersections']:>8}")
+    fit = fit_per_gaussian([r for r in configs if (r["width"], r["height"], r["sh_degree"]) == (256, 256, 3)])
+    print("\nfit over the 256x256 count sweep, CPU: fixed ms + us per Gaussian")
+    for phase, f in fit.items():
+        print(f"{phase:>16} {f['fixed_cpu_ms']:>8.2f} ms {f['cpu_us_per_gaussian']:>8.3f} us")
     cold = cold_start_ms()
     print(f"cold start (fresh process, warm numba cache, import + first 1k render): {cold:.0f} ms")
     peak = step_peak_rss_mb(100_000, 512, 512)
@@ -160,7 +332,7 @@ def main() -> None:
         "threads": args.threads, "torch": torch.__version__, "numba": numba.__version__,
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),  # this whole bench
         "peak_rss_100k_512_mb": peak,
-        "cold_start_ms": cold, "configs": configs,
+        "cold_start_ms": cold, "configs": configs, "fit_256x256_cpu": fit,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")

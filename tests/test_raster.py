@@ -2,10 +2,12 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from station.errors import BadInputError
+from station.ngs import _kernels
 from station.ngs.raster import median_depth, pixel_contributors, rasterization, set_num_threads
 from station.ngs.raster_reference import project
 
@@ -234,3 +236,13 @@ def test_thread_pools_are_sized_together():
         torch.set_num_threads(before[1])
     with pytest.raises(BadInputError, match="threads must be >= 1"):
         set_num_threads(0)
+
+
+def test_depth_order_is_a_stable_argsort_with_ties_and_signed_zeros():
+    rng = np.random.default_rng(0)
+    cases = [rng.normal(3, 1, 5000), np.round(rng.normal(0, 2, 3000), 1), np.array([2.0, -0.0, 0.0, -1e-30, 5.0, -7.0]),
+             np.array([])]
+    for depths in cases:
+        for dtype in (np.float32, np.float64):
+            d = depths.astype(dtype)
+            np.testing.assert_array_equal(_kernels.depth_order(d), np.argsort(d, kind="stable"))

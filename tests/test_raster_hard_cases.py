@@ -2,10 +2,12 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from station.errors import BadInputError
+from station.ngs import _kernels, _project_kernels
 from station.ngs.raster import pixel_contributors, rasterization
 
 BACKENDS = ["cpu", "torch"]
@@ -132,3 +134,39 @@ def test_log_scales_and_opacities_out_of_range_are_refused():
         rasterization(means, quats, -scales, opacities, colors, viewmats, Ks, 8, 8)
     with pytest.raises(BadInputError, match="opacities must lie in"):
         rasterization(means, quats, scales, opacities + 1, colors, viewmats, Ks, 8, 8)
+
+
+def test_row_culling_drops_only_rows_that_composite_nothing():
+    """The kernels skip tile rows outside each Gaussian's alpha >= 1/255 ellipse; on thin, tilted, huge and
+    barely visible Gaussians that must give the same image, stopping points and gradients as no culling."""
+    g = torch.Generator().manual_seed(5)
+    n, width, height = 300, 64, 48
+    means = torch.rand(n, 3, generator=g) * torch.tensor([2.0, 1.6, 1.0]) + torch.tensor([-1.0, -0.8, 2.5])
+    scales = torch.exp(torch.randn(n, 3, generator=g) * 1.2 - 3.0)
+    scales[::3, 0] *= 30.0                                                     # needles
+    quats = torch.randn(n, 4, generator=g)
+    opacities = torch.rand(n, generator=g)
+    opacities[::7] = 1.2 / 255.0                                               # barely above the skip threshold
+    colors = torch.rand(n, 3, generator=g)
+    viewmats, Ks = camera(width, height, focal=50.0)
+    campos = torch.zeros(1, 3)
+    m2, conics, depths, radii, rgb = _project_kernels.project_fwd(
+        means.numpy(), quats.numpy(), scales.numpy(), colors[:, None].numpy(), -1, viewmats.numpy(), Ks.numpy(),
+        campos.numpy(), width, height, 0.01, 1e10)
+    m2, conics, depths, radii, op, feats = m2[0], conics[0], depths[0], radii[0], opacities.numpy(), colors.numpy()
+    bins = _kernels.bin_gaussians(m2, conics, op, radii, depths, width, height)
+    assert (bins[4] < width / 2).mean() > 0.5                               # culling has rows to cull here
+    outputs = {}
+    for name, extent in (("culled", bins[4]), ("whole tile", np.full_like(bins[4], 1e30))):
+        img, t_final, n_proc = _kernels.rasterize_fwd(m2, conics, feats, op, bins[0], bins[1], extent, width,
+                                                      height, True)
+        g_img = np.linspace(-1, 1, img.size, dtype=np.float32).reshape(img.shape)
+        slots = _kernels.rasterize_bwd(m2, conics, feats, op, np.zeros(3, np.float32), bins[0], bins[1], extent,
+                                       width, height, img, t_final, n_proc, g_img, np.ones_like(t_final), True)
+        outputs[name] = (img, t_final, n_proc, slots)
+    culled, whole = outputs["culled"], outputs["whole tile"]
+    assert (1 - whole[1]).mean() > 0.3
+    np.testing.assert_array_equal(culled[2], whole[2])
+    np.testing.assert_allclose(culled[0], whole[0], atol=1e-6, rtol=0)
+    np.testing.assert_allclose(culled[1], whole[1], atol=1e-6, rtol=0)
+    np.testing.assert_allclose(culled[3], whole[3], atol=1e-5 * np.abs(whole[3]).max(), rtol=0)

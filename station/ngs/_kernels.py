@@ -30,6 +30,7 @@ LOG2E = F(1.4426950408889634)
 LN2 = F(0.6931471805599453)
 SQRT2 = F(1.4142135623730951)
 EXP_FLOOR = F(-30.0)
+BIG = 1e30
 POLY = (F(1.0), F(1.0), F(0.5), F(1.0 / 6), F(1.0 / 24), F(1.0 / 120), F(1.0 / 720), F(1.0 / 5040))
 
 
@@ -77,16 +78,77 @@ def _sig_max(opacity):
     return math.log(max(opacity * 255.0, 1.0)) + 1e-3
 
 
+@njit(cache=True)
+def _y_extent(a, b, c, sig_max):
+    """Half-height in pixels of the ellipse sigma <= sig_max, padded for float32 rounding of sigma in the
+    compositing loops; BIG for a conic that is not positive definite, 0 for a Gaussian never visible."""
+    det = a * c - b * b
+    if sig_max < 0.0:
+        return 0.0
+    if a <= 0.0 or c <= 0.0 or det <= 0.0:
+        return BIG
+    return math.sqrt(2.0 * sig_max * a / det) * 1.01 + 0.05
+
+
+@njit(cache=True)
+def _row_span(my, ext, y0):
+    """Tile-local pixels [p0, p1) of the rows whose centres lie within ext of my: only they can reach alpha
+    >= 1/255, so compositing skips the other rows (exactly: they would add nothing). Unsigned, because numba
+    wraps a possibly negative signed index on every access, which stops LLVM from vectorising the loops."""
+    lo = min(max(my - ext - y0 - 0.5, -1.0), TILE + 1.0)
+    hi = min(max(my + ext - y0 - 0.5, -1.0), TILE + 1.0)
+    r0 = max(int(math.ceil(lo)), 0)
+    r1 = min(int(math.floor(hi)) + 1, TILE)
+    return np.uint64(r0 * TILE), np.uint64(max(r1, r0) * TILE)
+
+
+U8, U63, RADIX_MASK = np.uint64(8), np.uint64(63), np.uint64(255)
+
+
+@njit(cache=True)
+def depth_order(depths):
+    """Stable argsort of depths (ties keep index order, as a stable merge sort): LSD radix sort, 8 bits a pass,
+    on the float64 bits mapped to an order-preserving uint64; passes where every key shares the digit (the
+    low mantissa of float32 depths) are skipped."""
+    n = depths.shape[0]
+    keys = np.empty(n, np.uint64)
+    bits = (depths.astype(np.float64) + 0.0).view(np.uint64)  # + 0.0 makes -0.0 tie with 0.0, as in a sort
+    for i in range(n):
+        b = bits[i]
+        keys[i] = ~b if (b >> U63) != np.uint64(0) else b | (np.uint64(1) << U63)
+    order = np.arange(n)
+    scratch = np.empty(n, np.int64)
+    for pass_ in range(8):
+        shift = np.uint64(pass_) * U8
+        counts = np.zeros(257, np.int64)
+        for i in range(n):
+            counts[((keys[order[i]] >> shift) & RADIX_MASK) + np.uint64(1)] += 1
+        if counts.max() == n:
+            continue
+        for d in range(256):
+            counts[d + 1] += counts[d]
+        for i in range(n):
+            g = order[i]
+            d = (keys[g] >> shift) & RADIX_MASK
+            scratch[counts[d]] = g
+            counts[d] += 1
+        order, scratch = scratch, order
+    return order
+
+
 @njit(parallel=True, cache=True)
 def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     """Per-tile depth-sorted intersection lists -> tile_offsets [T+1], isect_gid [M], gauss_offsets [N+1],
-    gauss_slots [M] (for Gaussian g, the list positions of its intersections, tile-major order)."""
+    gauss_slots [M] (for Gaussian g, the list positions of its intersections, tile-major order), extent_y [N]
+    (see `_y_extent`)."""
     n = means2d.shape[0]
     tw = (width + TILE - 1) // TILE
     th = (height + TILE - 1) // TILE
     counts = np.zeros(n, np.int64)
+    extent_y = np.empty(n, np.float64)
     for g in prange(n):
         sig_max = _sig_max(opacities[g])
+        extent_y[g] = _y_extent(float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), sig_max)
         if radii[g] > 0 and sig_max >= 0.0:
             u, v = means2d[g, 0], means2d[g, 1]
             x0, y0, x1, y1 = _tile_rect(u, v, float(radii[g]), tw, th)
@@ -96,7 +158,7 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     gauss_offsets = np.zeros(n + 1, np.int64)
     gauss_offsets[1:] = np.cumsum(counts)
     m = gauss_offsets[n]
-    order = np.argsort(depths, kind="mergesort")
+    order = depth_order(depths)
     tile_counts = np.zeros(tw * th + 1, np.int64)
     isect_tile = np.empty(m, np.int64)
     for g in prange(n):
@@ -123,16 +185,15 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
             isect_gid[cursor[t]] = g
             gauss_slots[j] = cursor[t]
             cursor[t] += 1
-    return tile_offsets, isect_gid, gauss_offsets, gauss_slots
+    return tile_offsets, isect_gid, gauss_offsets, gauss_slots, extent_y
 
 
 @njit(fastmath=True, cache=True)
-def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf):
-    """Alpha and exp(-sigma) of one Gaussian over a tile's pixels; sigma < 0 gives alpha 0."""
-    npix = px.shape[0]
+def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, p0, p1):
+    """Alpha and exp(-sigma) of one Gaussian over a tile's pixels [p0, p1); sigma < 0 gives alpha 0."""
     if fast:
         fbuf = ibuf.view(np.float32)
-        for p in range(npix):
+        for p in range(p0, p1):
             dx = mx - px[p]
             dy = my - py[p]
             sig = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
@@ -143,11 +204,11 @@ def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf):
                 POLY[6] + f * POLY[7]))))))
             ibuf[p] = (np.int32(kf) + np.int32(127)) << np.int32(23)
             expo[p] = poly * SQRT2 if sig >= ZERO else ZERO
-        for p in range(npix):
+        for p in range(p0, p1):
             expo[p] *= fbuf[p]
             alpha[p] = min(ALPHA_MAX, op * expo[p])
     else:
-        for p in range(npix):
+        for p in range(p0, p1):
             dx = mx - px[p]
             dy = my - py[p]
             sig = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
@@ -173,7 +234,7 @@ def _tile_pixels(t, tw, width, height, dtype):
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, width, height, fast):
+def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, extent_y, width, height, fast):
     """Composite front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W] int32
     (position in the tile list where the pixel stopped; the list length if it never did)."""
     dt = means2d.dtype
@@ -186,6 +247,7 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, w
     for t in prange(ntiles):
         start, end = tile_offsets[t], tile_offsets[t + 1]
         px, py, inside = _tile_pixels(t, tw, width, height, dt)
+        y0 = (t // tw) * TILE
         T = np.ones(TILE_PIX, dt)
         live = np.empty(TILE_PIX, dt)
         stop_at = np.full(TILE_PIX, end - start, np.int32)
@@ -200,9 +262,10 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, w
             n_live += inside[p]
         for k in range(end - start):
             g = isect_gid[start + k]
+            p0, p1 = _row_span(means2d[g, 1], extent_y[g], y0)
             _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
-                    px, py, alpha, expo, fast, ibuf)
-            for p in range(TILE_PIX):
+                    px, py, alpha, expo, fast, ibuf, p0, p1)
+            for p in range(p0, p1):
                 a = alpha[p]
                 valid = (a >= ALPHA_MIN) & (live[p] > ZERO)
                 next_t = T[p] * (ONE - a)
@@ -214,7 +277,7 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, w
                 stop_at[p] = k if stop else stop_at[p]
             for d in range(d_ch):
                 c = colors[g, d]
-                for p in range(TILE_PIX):
+                for p in range(p0, p1):
                     acc[d, p] += c * w[p]
             if k % 8 == 7:
                 s = 0.0
@@ -234,7 +297,8 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, w
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid, width, height, fast):
+def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid, extent_y, width, height,
+                     fast):
     """Per pixel, the depth of the Gaussian whose compositing takes T to 0.5 or below -> [H, W] (+inf where
     T stays above 0.5). Same skip and stop rules as rasterize_fwd; forward only (meshing, not training)."""
     dt = means2d.dtype
@@ -244,6 +308,7 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
     for t in prange(ntiles):
         start, end = tile_offsets[t], tile_offsets[t + 1]
         px, py, inside = _tile_pixels(t, tw, width, height, dt)
+        y0 = (t // tw) * TILE
         T = np.ones(TILE_PIX, dt)
         live = np.empty(TILE_PIX, dt)
         median = np.full(TILE_PIX, np.inf, dt)
@@ -254,10 +319,11 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
             live[p] = 1.0 if inside[p] else 0.0
         for k in range(end - start):
             g = isect_gid[start + k]
+            p0, p1 = _row_span(means2d[g, 1], extent_y[g], y0)
             _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
-                    px, py, alpha, expo, fast, ibuf)
+                    px, py, alpha, expo, fast, ibuf, p0, p1)
             z = depths[g]
-            for p in range(TILE_PIX):
+            for p in range(p0, p1):
                 a = alpha[p]
                 valid = (a >= ALPHA_MIN) & (live[p] > ZERO)
                 next_t = T[p] * (ONE - a)
@@ -278,7 +344,7 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, isect_gid, width, height,
+def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, isect_gid, extent_y, width, height,
                   feats, t_final, n_proc, g_feats, g_alpha, fast):
     """Per-intersection gradients in list order -> slots [M, 6 + D]: d means2d (2), d conic (3), d colour (D),
     d opacity (1)."""
@@ -293,6 +359,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         if end == start:
             continue
         px, py, inside = _tile_pixels(t, tw, width, height, dt)
+        y0 = (t // tw) * TILE
         T = np.ones(TILE_PIX, dt)
         tn = np.zeros(TILE_PIX, dt)
         limit = np.zeros(TILE_PIX, np.int32)
@@ -324,8 +391,9 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
             mx, my = means2d[g, 0], means2d[g, 1]
             ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
             op = opacities[g]
-            _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf)
-            for p in range(TILE_PIX):
+            p0, p1 = _row_span(my, extent_y[g], y0)
+            _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, p0, p1)
+            for p in range(p0, p1):
                 a = alpha[p]
                 take = (a >= ALPHA_MIN) & (k < limit[p])
                 inv = ONE / (ONE - a)
@@ -337,7 +405,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
             for d in range(d_ch):
                 c = colors[g, d]
                 acc_c = ZERO
-                for p in range(TILE_PIX):
+                for p in range(p0, p1):
                     rest[d, p] -= c * w[p]
                     gda[p] += go[d, p] * ((tb[p] * c if w[p] != ZERO else ZERO) - rest[d, p] * inv1a[p])
                     acc_c += go[d, p] * w[p]
@@ -348,7 +416,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
             g_a = ZERO
             g_b = ZERO
             g_c = ZERO
-            for p in range(TILE_PIX):
+            for p in range(p0, p1):
                 unclamped = op * expo[p] < ALPHA_MAX
                 gd = gda[p] if unclamped else ZERO
                 g_op += gd * expo[p]
@@ -384,7 +452,7 @@ def reduce_per_gaussian(slot_grads, gauss_offsets, gauss_slots):
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, width, height, n_proc, fast,
+def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, extent_y, width, height, n_proc, fast,
                        counts, cursor, ids, fill):
     """One pass over every pixel's contributors: count them (fill=False) or write their ids (fill=True)."""
     dt = means2d.dtype
@@ -392,6 +460,7 @@ def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, widt
     for t in prange(tile_offsets.shape[0] - 1):
         start = tile_offsets[t]
         px, py, inside = _tile_pixels(t, tw, width, height, dt)
+        y0 = (t // tw) * TILE
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
@@ -401,9 +470,10 @@ def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, widt
                 kmax = max(kmax, n_proc[int(py[p]), int(px[p])])
         for k in range(kmax):
             g = isect_gid[start + k]
+            p0, p1 = _row_span(means2d[g, 1], extent_y[g], y0)
             _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
-                    px, py, alpha, expo, fast, ibuf)
-            for p in range(TILE_PIX):
+                    px, py, alpha, expo, fast, ibuf, p0, p1)
+            for p in range(p0, p1):
                 if inside[p] and alpha[p] >= ALPHA_MIN and k < n_proc[int(py[p]), int(px[p])]:
                     pix = int(py[p]) * width + int(px[p])
                     if fill:
@@ -413,14 +483,14 @@ def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, widt
                         counts[pix + 1] += 1
 
 
-def list_contributors(means2d, conics, opacities, tile_offsets, isect_gid, width, height, n_proc, fast):
+def list_contributors(means2d, conics, opacities, tile_offsets, isect_gid, extent_y, width, height, n_proc, fast):
     """Per pixel (row-major), the Gaussian ids composited front to back -> offsets [H*W+1], ids [M]."""
     counts = np.zeros(height * width + 1, np.int64)
     empty = np.zeros(0, np.int64)
-    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, width, height, n_proc, fast,
+    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, extent_y, width, height, n_proc, fast,
                        counts, empty, empty, False)
     offsets = np.cumsum(counts)
     ids = np.empty(offsets[-1], np.int64)
-    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, width, height, n_proc, fast,
+    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, extent_y, width, height, n_proc, fast,
                        counts, offsets[:-1].copy(), ids, True)
     return offsets, ids

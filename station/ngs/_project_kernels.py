@@ -122,7 +122,7 @@ def _jacobian(x, y, z, fx, fy, cx, cy, width, height):
 CHUNK = 64
 
 
-@njit(cache=True, error_model="numpy", fastmath=True)
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far,
                  means2d, conics, depths, radii, colors, Rw, s0, s1, s2, covc, s4, basis):
     """Project Gaussian g into camera c, writing every output slot; s0..s4 are [3, 3] scratch (separate
@@ -185,12 +185,16 @@ def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     return means2d, conics, depths, radii, colors
 
 
-@njit(cache=True, error_model="numpy", fastmath=True)
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, colors,
-                     g_means2d, g_conics, g_depths, g_colors, g_means, g_coeffs, g_cov, pose_part, Rw, s0, s1, cov,
-                     covc, t33, g_covc, gR, J, jc, basis, bx, by, bz):
-    """Backward of `_project_one` for (c, g): adds into g_means, g_coeffs, g_cov (world covariance), pose_part.
-    Everything after pose_part is scratch: [3, 3] except J, jc [2, 3] and the SH buffers [16]."""
+                     upstream, outs, Rw, scratch):
+    """Backward of `_project_one` for (c, g): adds into outs = (g_means, g_coeffs, g_cov (world covariance),
+    pose_part). upstream = (g_means2d, g_conics, g_depths, g_colors). scratch holds [3, 3] buffers but for
+    J, jc [2, 3] and the SH buffers [16]. Tuples keep the call under CPython's 30-argument limit, past
+    which numba cannot inline it (and an outlined call costs a refcount pair per array argument)."""
+    g_means2d, g_conics, g_depths, g_colors = upstream
+    g_means, g_coeffs, g_cov, pose_part = outs
+    s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz = scratch
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
     x = Rw[0, 0] * means[g, 0] + Rw[0, 1] * means[g, 1] + Rw[0, 2] * means[g, 2] + viewmats[c, 0, 3]
     y = Rw[1, 0] * means[g, 0] + Rw[1, 1] * means[g, 1] + Rw[1, 2] * means[g, 2] + viewmats[c, 1, 3]
@@ -266,7 +270,7 @@ def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks
             pose_part[c, g, 12 + i] = -gm[i]
 
 
-@njit(cache=True, error_model="numpy", fastmath=True)
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
     """Chain d loss / d world covariance into the (unnormalised) quaternion and the scales of Gaussian g."""
     nrm, w, x, y, z = _quat_rot(quats, g, R)
@@ -307,7 +311,9 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     g_scales = np.zeros((n, 3), dt)
     g_coeffs = np.zeros(coeffs.shape, dt)
     pose_part = np.zeros((c_n, n, 15))  # per (camera, Gaussian): d Rw (9), d t (3), d campos (3)
-    Rws = [viewmats[c, :3, :3].astype(np.float64) for c in range(c_n)]
+    Rws = np.empty((c_n, 3, 3))
+    for c in range(c_n):
+        Rws[c] = viewmats[c, :3, :3]
     for chunk in prange((n + CHUNK - 1) // CHUNK):
         s0, s1, cov, covc, t33 = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
         g_covc, gR, g_cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
@@ -319,10 +325,11 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
             for c in range(c_n):
                 if radii[c, g] > 0:
                     seen = True
+                    Rw = Rws[c]
                     _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width,
-                                     height, colors, g_means2d, g_conics, g_depths, g_colors, g_means, g_coeffs,
-                                     g_cov, pose_part, Rws[c], s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx,
-                                     by, bz)
+                                     height, colors, (g_means2d, g_conics, g_depths, g_colors),
+                                     (g_means, g_coeffs, g_cov, pose_part), Rw,
+                                     (s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz))
             if seen:
                 _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, s0, s1, gR)
     pose = pose_part.sum(axis=1)                           # [C, 15], fixed summation order

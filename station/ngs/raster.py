@@ -224,7 +224,7 @@ class _Rasterize(torch.autograd.Function):
         fast = means2d.dtype == torch.float32
         bins = _kernels.bin_gaussians(arrays[0], arrays[1], arrays[3], radii.numpy(), depths.detach().numpy(), width,
                                       height)
-        img, t_final, n_proc = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], width, height, fast)
+        img, t_final, n_proc = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], bins[4], width, height, fast)
         ctx.state = (arrays, background.detach().numpy(), bins, img, t_final, n_proc, width, height, fast)
         t_final_t = torch.from_numpy(t_final)[..., None]                                   # [H, W, 1]
         return torch.from_numpy(img) + t_final_t * background, 1 - t_final_t
@@ -232,7 +232,7 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_img: Tensor, g_alpha: Tensor):
         arrays, bg, bins, img, t_final, n_proc, width, height, fast = ctx.state
-        slots = _kernels.rasterize_bwd(*arrays, bg, bins[0], bins[1], width, height, img, t_final, n_proc,
+        slots = _kernels.rasterize_bwd(*arrays, bg, bins[0], bins[1], bins[4], width, height, img, t_final, n_proc,
                                        g_img.contiguous().numpy(), g_alpha[..., 0].contiguous().numpy(), fast)
         red = torch.from_numpy(_kernels.reduce_per_gaussian(slots, bins[2], bins[3]))       # [N, 6 + D]
         d = slots.shape[1] - 6
@@ -311,7 +311,7 @@ def median_depth(
             return ref.median_depth(m2[0], conics[0], opacities, depths[0], radii[0], width, height)
         m2, conics, depths, opac, bins = _cpu_binned(means, quats, scales, opacities, viewmat, K, width, height,
                                                      near_plane)
-        out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], width, height,
+        out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], bins[4], width, height,
                                         means.dtype == torch.float32)
         return torch.from_numpy(out)
 
@@ -336,6 +336,7 @@ def pixel_contributors(
                                                 near_plane)
         fast = means.dtype == torch.float32
         feats = np.zeros((means.shape[0], 1), m2.dtype)
-        _, _, n_proc = _kernels.rasterize_fwd(m2, conics, feats, opac, bins[0], bins[1], width, height, fast)
-        offsets, ids = _kernels.list_contributors(m2, conics, opac, bins[0], bins[1], width, height, n_proc, fast)
+        _, _, n_proc = _kernels.rasterize_fwd(m2, conics, feats, opac, bins[0], bins[1], bins[4], width, height, fast)
+        offsets, ids = _kernels.list_contributors(m2, conics, opac, bins[0], bins[1], bins[4], width, height, n_proc,
+                                                  fast)
         return torch.from_numpy(offsets), torch.from_numpy(ids)
