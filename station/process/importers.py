@@ -26,6 +26,7 @@ import pycolmap
 from PIL import Image
 
 from station.errors import BadInputError
+from station.process.lens import Lens, lens_from_colmap, lens_from_nerfstudio, undistortion
 from station.process.poses import write_point_ply
 from station.process.rig_model import apply_similarity
 from station.process.sfm import Intrinsics
@@ -58,6 +59,7 @@ class SourceDataset:
     intrinsics: Intrinsics
     frames: list[SourceFrame]
     points: tuple[np.ndarray, np.ndarray] | None = None  # xyz [N, 3] source units, rgb [N, 3] uint8
+    lens: Lens | None = None  # the source camera's distortion, undistorted on import; None: pinhole
 
 
 @dataclass
@@ -111,8 +113,6 @@ def read_nerfstudio(src: Path) -> SourceDataset:
     frames_raw = data.get("frames")
     if not isinstance(frames_raw, list) or not frames_raw or len(frames_raw) > MAX_FRAMES:
         raise BadInputError(f"{where}: field 'frames' must be a list of 1..{MAX_FRAMES} frames")
-    if any(abs(float(data.get(k, 0.0) or 0.0)) > 1e-9 for k in ("k1", "k2", "k3", "k4", "p1", "p2")):
-        raise BadInputError(f"{where}: distorted cameras (k1.. / p1..) are not supported: undistort first")
     frames = []
     for i, raw in enumerate(frames_raw):
         fwhere = f"{where}: frames[{i}]"
@@ -144,7 +144,7 @@ def read_nerfstudio(src: Path) -> SourceDataset:
         # NeRF-synthetic: horizontal field of view only, principal point at the centre.
         fx = 0.5 * width / np.tan(0.5 * _finite(data, "camera_angle_x", where))
         intr = Intrinsics(width, height, fx, fx, width / 2.0, height / 2.0)
-    return SourceDataset(intr, frames)
+    return SourceDataset(intr, frames, lens=lens_from_nerfstudio(data, intr, where))
 
 
 def _colmap_dirs(src: Path) -> tuple[Path, Path]:
@@ -165,14 +165,8 @@ def read_colmap(src: Path) -> SourceDataset:
         raise BadInputError(f"{model_dir}: unreadable COLMAP model ({exc})") from exc
     if rec.num_cameras() != 1:
         raise BadInputError(f"{model_dir}: {rec.num_cameras()} cameras; one shared camera is supported")
-    camera = next(iter(rec.cameras.values()))
-    extra = [p for i, p in enumerate(camera.params) if i not in (*camera.focal_length_idxs(),
-                                                                 *camera.principal_point_idxs())]
-    if any(abs(p) > 1e-9 for p in extra):
-        raise BadInputError(f"{model_dir}: camera model {camera.model.name} has distortion {extra}: "
-                            "undistort first (colmap image_undistorter)")
-    k = camera.calibration_matrix()
-    intr = Intrinsics(camera.width, camera.height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+    lens = lens_from_colmap(next(iter(rec.cameras.values())), str(model_dir))
+    intr = lens.intrinsics
     root = ScanFolder(image_dir)
     frames = []
     for image in sorted(rec.images.values(), key=lambda im: im.name):
@@ -190,7 +184,7 @@ def read_colmap(src: Path) -> SourceDataset:
     if rec.num_points3D():
         pts = list(rec.points3D.values())
         points = (np.array([p.xyz for p in pts]), np.array([p.color for p in pts], dtype=np.uint8))
-    return SourceDataset(intr, frames, points)
+    return SourceDataset(intr, frames, points, lens)
 
 
 def read_idr(src: Path) -> SourceDataset:
@@ -255,6 +249,8 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
 
     scan = ScanFolder(out)
     flags: list[str] = []
+    undistort = undistortion(data.lens) if data.lens is not None else None
+    intrinsics = undistort.target if undistort is not None else data.intrinsics
     frames, masks, images, mask_kind = [], [], [], "none"
     for i, frame in enumerate(data.frames):
         name = f"{i:04d}_{frame.image.stem}.png"
@@ -269,11 +265,16 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
         coverage = None
         if frame.mask is not None:
             with Image.open(frame.mask) as m:
+                if m.size != img.size:
+                    raise BadInputError(f"{frame.mask}: mask size {m.size} differs from its image's {img.size}")
                 coverage = np.asarray(m.convert("L"))
             mask_kind = "files"
         elif rgba is not None:
             coverage = np.asarray(rgba)[:, :, 3]
             mask_kind = "alpha"
+        if undistort is not None:
+            rgb = undistort.image(rgb)
+            coverage = None if coverage is None else undistort.mask(coverage)
         atomic_write_with(scan.images_dir / name, lambda tmp, a=rgb: Image.fromarray(a).save(tmp, format="PNG"))
         if coverage is not None:
             atomic_write_with(scan.masks_dir / name, lambda tmp, m=coverage: Image.fromarray(m).save(tmp, format="PNG"))
@@ -288,7 +289,7 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
         xyz = units * (data.points[0] - origin) @ rot.T
         rgb_pts, init = data.points[1], "source"
     elif masks:
-        xyz, rgb_pts = carve([f.c2w for f in frames], masks, images, data.intrinsics, settings.hull_resolution)
+        xyz, rgb_pts = carve([f.c2w for f in frames], masks, images, intrinsics, settings.hull_resolution)
         init = "visual_hull"
     else:
         xyz, rgb_pts = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
@@ -296,9 +297,11 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
     if len(xyz):
         atomic_write_with(scan.poses_dir / "points3d.ply", lambda tmp: write_point_ply(tmp, xyz, rgb_pts))
         ply, count = "poses/points3d.ply", len(xyz)
-    write_transforms(scan, Transforms(data.intrinsics, frames, ply))
+    write_transforms(scan, Transforms(intrinsics, frames, ply))
     if not scan.scan_json.exists():
         atomic_write_json(scan.scan_json, {"stone_id": src.name, "imported": {"format": fmt, "source": str(src)}})
+    if undistort is not None:
+        flags.append(f"{data.lens.model} lens {data.lens.named()} undistorted on import to a pinhole camera")
     if orient == "ring":
         flags.append("axes from the camera ring: origin is where the cameras look, not the plate surface")
     report = ImportReport(fmt, len(frames), mask_kind, units, orient, init, count, flags,
