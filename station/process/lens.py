@@ -63,13 +63,18 @@ class Lens:
         """Same lens at another image size (distortion acts on normalised coordinates, so it stays)."""
         return Lens(self.intrinsics.scaled(width, height), self.model, self.coefficients)
 
-    def to_colmap(self, camera_id: int = 1) -> pycolmap.Camera:
+    def refinable(self) -> "Lens":
+        """This lens with distortion terms to refine: a pinhole becomes OPENCV with zero coefficients."""
+        return self if self.model != "PINHOLE" else Lens(self.intrinsics, "OPENCV", (0.0,) * len(OPENCV_ORDER))
+
+    def to_colmap(self, camera_id: int = 1, keep_model: bool = False) -> pycolmap.Camera:
+        """The COLMAP camera; `keep_model` keeps a zero-distortion OPENCV lens OPENCV (so BA can refine it)."""
         i = self.intrinsics
         if self.fisheye:
             model, params = "OPENCV_FISHEYE", [i.fx, i.fy, i.cx, i.cy, *self.coefficients]
         elif any(abs(c) > 0 for c in self.coefficients[4:]):
             model, params = "FULL_OPENCV", [i.fx, i.fy, i.cx, i.cy, *self.coefficients]
-        elif self.distorted:
+        elif self.distorted or (keep_model and self.model == "OPENCV"):
             model, params = "OPENCV", [i.fx, i.fy, i.cx, i.cy, *self.coefficients[:4]]
         else:
             model, params = "PINHOLE", [i.fx, i.fy, i.cx, i.cy]
@@ -176,6 +181,17 @@ def undistort_points(lens: Lens, pixels: np.ndarray) -> np.ndarray:
     return out.reshape(-1, 2)
 
 
+def displacement_px(lens: Lens) -> float:
+    """Largest shift distortion gives a pixel on the image border: below a tenth of a pixel, not worth a resample."""
+    if not lens.distorted:
+        return 0.0
+    i = lens.intrinsics
+    border = np.array([(u, v) for u in np.linspace(0.5, i.width - 0.5, 9) for v in np.linspace(0.5, i.height - 0.5, 7)
+                       if u in (0.5, i.width - 0.5) or v in (0.5, i.height - 0.5)])
+    n = undistort_points(lens, border)
+    return float(np.max(np.hypot(i.fx * n[:, 0] + i.cx - border[:, 0], i.fy * n[:, 1] + i.cy - border[:, 1])))
+
+
 def pinhole_for(lens: Lens, samples: int = 256) -> Intrinsics:
     """The pinhole camera, same size, square pixels, whose every pixel lands inside the distorted image."""
     i = lens.intrinsics
@@ -210,9 +226,9 @@ class Undistortion:
         return out.astype(bool) if coverage.dtype == bool else out
 
 
-def undistortion(lens: Lens) -> Undistortion | None:
-    """Remap tables to `pinhole_for(lens)`, or None when the lens has no distortion."""
-    if not lens.distorted:
+def undistortion(lens: Lens, min_shift_px: float = 0.0) -> Undistortion | None:
+    """Remap tables to `pinhole_for(lens)`, or None when distortion moves no pixel more than `min_shift_px`."""
+    if not lens.distorted or displacement_px(lens) <= min_shift_px:
         return None
     target = pinhole_for(lens)
     new_k = target.matrix()
