@@ -241,6 +241,10 @@ def test_colmap_distorted_cameras_are_undistorted_to_a_pinhole_on_import(tmp_pat
     image = np.asarray(Image.open(scan.resolve_inside(t.frames[0].file_path)).convert("L"))
     errors = dot_errors_px(image, t.intrinsics.fx, t.intrinsics.fy, t.intrinsics.cx, t.intrinsics.cy)
     assert errors.max() < 0.35, errors  # each dot lands where the written pinhole puts it
+    back = pycolmap.Reconstruction(str(scan.poses_dir / "colmap"))  # the COLMAP model beside it agrees
+    i = t.intrinsics
+    assert back.cameras[1].model.name == "PINHOLE" and back.num_reg_images() == 3
+    np.testing.assert_allclose(back.cameras[1].params, [i.fx, i.fy, i.cx, i.cy])
 
 
 @pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])

@@ -30,12 +30,13 @@ def ring_poses(elevations=(15.0, 40.0), count: int = 12, distance: float = 0.5) 
     return out
 
 
-def observed_scene(noise_px: float = 0.2, seed: int = 0) -> tuple[pycolmap.Reconstruction, list[tuple[float, np.ndarray]]]:
+def observed_scene(noise_px: float = 0.2, seed: int = 0, params: list[float] = TRUE_PARAMS, spread: float = 0.2,
+                   ) -> tuple[pycolmap.Reconstruction, list[tuple[float, np.ndarray]]]:
     """Points seen through the true distorted camera by fixed ring poses; the model starts from a pinhole guess."""
     rng = np.random.default_rng(seed)
-    truth = pycolmap.Camera(model="OPENCV", width=W, height=H, params=TRUE_PARAMS, camera_id=1)
+    truth = pycolmap.Camera(model="OPENCV", width=W, height=H, params=params, camera_id=1)
     start = pycolmap.Camera(model="OPENCV", width=W, height=H, params=[310, 310, W / 2, H / 2, 0, 0, 0, 0], camera_id=1)
-    points = rng.uniform(-0.2, 0.2, (400, 3))
+    points = rng.uniform(-spread, spread, (400, 3))
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(start)
     tracks: dict[int, list[tuple[int, int]]] = {}
@@ -61,7 +62,8 @@ def observed_scene(noise_px: float = 0.2, seed: int = 0) -> tuple[pycolmap.Recon
 def test_self_calibration_recovers_a_known_lens_with_the_rig_poses_held():
     rec, poses = observed_scene()
     before = np.concatenate(list(sfm.reprojection_errors(rec).values())).mean()
-    sfm.self_calibrate(rec, sfm.SfmSettings(), hold_poses=True)
+    rec, note = sfm.self_calibrate(rec, sfm.SfmSettings(), hold_poses=True)
+    assert note is None
     camera = rec.cameras[1]
     fx, fy, cx, cy, k1, k2, p1, p2 = camera.params
     assert fx == pytest.approx(300.0, rel=0.005) and cx == pytest.approx(163.0, abs=0.5) and cy == pytest.approx(118.0, abs=0.5)
@@ -74,6 +76,15 @@ def test_self_calibration_recovers_a_known_lens_with_the_rig_poses_held():
         np.testing.assert_allclose(sfm.c2w_of(image), c2w, atol=1e-9)
     lens = lens_from_colmap(camera, "test")
     assert lens.model == "OPENCV" and displacement_px(lens) > 3.0 and undistortion(lens, 0.1) is not None
+
+
+def test_self_calibration_keeps_the_prior_when_the_lens_is_unobservable_or_fits_no_better():
+    small, _ = observed_scene(spread=0.05)  # a stone in the middle of the frame
+    kept, note = sfm.self_calibrate(small, sfm.SfmSettings(), hold_poses=True)
+    assert kept is small and "features reach" in note and kept.cameras[1].params[4] == 0.0
+    pinhole, _ = observed_scene(params=[310, 310, W / 2, H / 2, 0, 0, 0, 0])  # the prior is already right
+    kept, note = sfm.self_calibrate(pinhole, sfm.SfmSettings(), hold_poses=True)
+    assert kept is pinhole and "moved the mean error only" in note
 
 
 def test_the_fold_check_refuses_a_radial_map_that_turns_back_inside_the_image():
@@ -98,7 +109,7 @@ def test_a_calibrated_lens_joins_the_rig_model_and_survives_its_json(tmp_path):
 
 def test_the_colmap_export_round_trips_through_pycolmap_with_undistorted_tracks(tmp_path):
     rec, poses = observed_scene(noise_px=0.0)
-    sfm.self_calibrate(rec, sfm.SfmSettings(), hold_poses=True)
+    rec, _ = sfm.self_calibrate(rec, sfm.SfmSettings(), hold_poses=True)
     lens = lens_from_colmap(rec.cameras[1], "test")
     target = undistortion(lens).target
     frames = [PosedFrame(f"images/{im.name}", sfm.c2w_of(im)) for im in sorted(rec.images.values(), key=lambda i: i.name)]

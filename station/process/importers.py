@@ -26,6 +26,7 @@ import pycolmap
 from PIL import Image
 
 from station.errors import BadInputError
+from station.process.colmap_export import colmap_model, write_colmap_model
 from station.process.lens import Lens, lens_from_colmap, lens_from_nerfstudio, undistortion
 from station.process.poses import write_point_ply
 from station.process.rig_model import apply_similarity
@@ -298,6 +299,7 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
         atomic_write_with(scan.poses_dir / "points3d.ply", lambda tmp: write_point_ply(tmp, xyz, rgb_pts))
         ply, count = "poses/points3d.ply", len(xyz)
     write_transforms(scan, Transforms(intrinsics, frames, ply))
+    write_colmap_model(scan, colmap_model(Transforms(intrinsics, frames, ply), (xyz, rgb_pts)))
     if not scan.scan_json.exists():
         atomic_write_json(scan.scan_json, {"stone_id": src.name, "imported": {"format": fmt, "source": str(src)}})
     if undistort is not None:

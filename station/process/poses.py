@@ -152,6 +152,7 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             sfm.write_colmap_masks(masks, mask_dir, settings.sfm.mask_erode_px)
         names = [r.name for r in refs]
         calibrate = settings.sfm.self_calibrate
+        note: str | None = "lens held: self-calibration off" if not calibrate else "lens held: no SfM points"
         if use_rig:
             prior = rig.lens().scaled(width, height)
             camera = (prior.refinable() if calibrate else prior).to_colmap(keep_model=True)
@@ -160,7 +161,7 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             rec = sfm.reconstruction_from_poses(database, rig_poses)
             rec = sfm.triangulate_fixed(rec, database, scan.images_dir, work / "triangulated", settings.sfm)
             if calibrate and rec.num_points3D():
-                sfm.self_calibrate(rec, settings.sfm, hold_poses=True)
+                rec, note = sfm.self_calibrate(rec, settings.sfm, hold_poses=True)
             poses = rig_poses
             report = PoseReport("rig", len(refs), planned, sorted(poses), [], 0, "sfm", 0.0, 0.0, flags=flags)
             if settings.cross_check:
@@ -181,7 +182,7 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             if rec is None or rec.num_reg_images() < 3:
                 raise PosingError(f"{scan.root}: SfM registered {0 if rec is None else rec.num_reg_images()} views")
             if calibrate and rec.num_points3D():
-                sfm.self_calibrate(rec, settings.sfm, hold_poses=False)
+                rec, note = sfm.self_calibrate(rec, settings.sfm, hold_poses=False)
             rec, scaled = _turntable_gauge(rec, scan_rig)
             if not scaled:
                 flags.append("no rig in scan.json: scale is SfM units, not metres")
@@ -195,7 +196,7 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
         report.reprojection_by_ring_px = _ring_errors(rec, refs)
         lens, undistort = _lens_of(rec, settings, flags)
         report.lens = {"intrinsics": vars(lens.intrinsics), **lens.to_dict(), "max_shift_px": displacement_px(lens),
-                       "undistorted": undistort is not None}
+                       "undistorted": undistort is not None, "self_calibration": note or "refined"}
         intr = undistort.target if undistort is not None else lens.intrinsics
         if undistort is not None:
             _undistort_scan(scan, undistort)

@@ -63,6 +63,9 @@ class SfmSettings:
     refine_principal_point: bool = False  # only when intrinsics are unknown and the views ring the object
     self_calibrate: bool = True  # refine focal, principal point, k1, k2, p1, p2 after posing
     calibration_loss_px: float = 1.0  # Cauchy scale of the self-calibration: mismatches weigh little
+    # Distortion is only observable where features reach: tracks must span this share of the half-diagonal
+    calibration_min_reach: float = 0.6
+    calibration_min_gain: float = 0.05  # keep the refined lens only if it cuts the mean error by this share
 
 
 @contextmanager
@@ -240,13 +243,36 @@ def points_and_colours(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.nda
     return xyz, rgb
 
 
-@colmap_log_level()
-def self_calibrate(rec: pycolmap.Reconstruction, settings: SfmSettings, hold_poses: bool) -> None:
-    """Bundle-adjust the shared camera (focal, principal point, distortion) and the points, in place.
+def self_calibrate(rec: pycolmap.Reconstruction, settings: SfmSettings,
+                   hold_poses: bool) -> tuple[pycolmap.Reconstruction, str | None]:
+    """Bundle-adjust the shared camera (focal, principal point, distortion) and the points on a copy.
 
     With `hold_poses` every view stays where the rig model put it (the rig is the prior; the lens
     alone must explain what is left); without, poses are refined too and only the gauge is fixed.
+    Returns the refined model, or `rec` unchanged and why: tracks that stay near the centre cannot
+    tell distortion from focal length, and a lens that does not fit better is noise fitted.
     """
+    observed = [p.xy for image in rec.images.values() if image.has_pose for p in image.points2D if p.has_point3D()]
+    camera = next(iter(rec.cameras.values()))
+    centre = np.array([camera.principal_point_x, camera.principal_point_y])
+    reach = np.percentile(np.linalg.norm(np.array(observed) - centre, axis=1), 95) / (0.5 * np.hypot(camera.width,
+                                                                                                       camera.height))
+    if reach < settings.calibration_min_reach:
+        return rec, (f"lens not self-calibrated: features reach {100 * reach:.0f} % of the half-diagonal, "
+                     f"{100 * settings.calibration_min_reach:.0f} % needed (fill more of the frame)")
+    held, refined = pycolmap.Reconstruction(rec), pycolmap.Reconstruction(rec)
+    _bundle_adjust_camera(held, settings, hold_poses, refine_camera=False)  # what the prior lens alone reaches
+    _bundle_adjust_camera(refined, settings, hold_poses, refine_camera=True)
+    before = np.concatenate(list(reprojection_errors(held).values())).mean()
+    after = np.concatenate(list(reprojection_errors(refined).values())).mean()
+    if after > (1.0 - settings.calibration_min_gain) * before:
+        return rec, f"lens not self-calibrated: refining it moved the mean error only from {before:.3f} to {after:.3f} px"
+    return refined, None
+
+
+@colmap_log_level()
+def _bundle_adjust_camera(rec: pycolmap.Reconstruction, settings: SfmSettings, hold_poses: bool,
+                          refine_camera: bool) -> None:
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in rec.reg_image_ids():
         config.add_image(image_id)
@@ -256,9 +282,9 @@ def self_calibrate(rec: pycolmap.Reconstruction, settings: SfmSettings, hold_pos
     else:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     options = pycolmap.BundleAdjustmentOptions()
-    options.refine_focal_length = True
-    options.refine_principal_point = True
-    options.refine_extra_params = True
+    options.refine_focal_length = refine_camera
+    options.refine_principal_point = refine_camera
+    options.refine_extra_params = refine_camera
     options.refine_rig_from_world = not hold_poses
     options.refine_sensor_from_rig = False
     options.print_summary = False
