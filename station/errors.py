@@ -62,3 +62,23 @@ class GateFailedError(StationError):
     """The asset was written but failed the quality gate and is quarantined."""
 
     exit_code = 1
+
+
+# Untrusted file formats (station/formats, station/ngs/checkpoint_io.py) ---------------------------
+class FormatError(ScanFolderError):
+    """A file of a scan folder or a source dataset breaks its format; `path` and `field` say where."""
+
+    def __init__(self, path: object, field: str | None, problem: str):
+        super().__init__(path, field, problem)  # all three in args: the error pickles across processes
+        self.path, self.field, self.problem = path, field, problem
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.field}: {self.problem}" if self.field else f"{self.path}: {self.problem}"
+
+
+class InputTooLargeError(FormatError):
+    """A file claims more than a configured limit (pixels, bytes, nesting): refused before it is decoded."""
+
+
+class CheckpointError(FormatError):
+    """A model file (checkpoint.pt, surface.pt, infill.pt) is truncated, garbage or has the wrong layout."""

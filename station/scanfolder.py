@@ -19,6 +19,8 @@ from pathlib import Path
 from typing import Any, Iterable, Literal
 
 from station.errors import DiskFullError, ScanFolderError
+from station.formats.jsonfile import read_json_object
+from station.formats.manifest import read_manifest_records
 
 FrameKind = Literal["shot", "plate"]
 
@@ -125,24 +127,6 @@ class ManifestEntry:
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=True)
-
-    @staticmethod
-    def from_json(line: str, source: Path) -> "ManifestEntry":
-        try:
-            raw = json.loads(line)
-            return ManifestEntry(
-                file=str(raw["file"]),
-                sha256=str(raw["sha256"]),
-                elevation_deg=float(raw["elevation_deg"]),
-                azimuth_deg=float(raw["azimuth_deg"]),
-                kind=raw["kind"],
-                exposure_s=float(raw.get("exposure_s", 0.0)),
-                iso=int(raw.get("iso", 0)),
-                utc=str(raw.get("utc", "")),
-                extra=dict(raw.get("extra", {})),
-            )
-        except (ValueError, KeyError, TypeError) as exc:
-            raise ScanFolderError(f"{source}: malformed manifest line ({exc}): {line[:120]!r}") from exc
 
 
 class ScanFolder:
@@ -261,26 +245,15 @@ class ScanFolder:
         return self.read_json(self.scan_json)
 
     def read_json(self, path: Path) -> dict[str, Any]:
-        if not path.is_file():
-            raise ScanFolderError(f"{path}: missing")
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ScanFolderError(f"{path}: not valid JSON ({exc})") from exc
-        if not isinstance(data, dict):
-            raise ScanFolderError(f"{path}: expected a JSON object at the top level")
-        return data
+        return read_json_object(path)
 
     # manifest.jsonl -----------------------------------------------------------------------
     def read_manifest(self) -> list[ManifestEntry]:
         if not self.manifest_path.exists():
             return []
-        entries = []
-        for line in self.manifest_path.read_text(encoding="utf-8").splitlines():
-            if line.strip():
-                entry = ManifestEntry.from_json(line, self.manifest_path)
-                self.resolve_inside(entry.file)
-                entries.append(entry)
+        entries = [ManifestEntry(**record) for record in read_manifest_records(self.manifest_path)]
+        for entry in entries:
+            self.resolve_inside(entry.file)
         return entries
 
     def write_manifest(self, entries: Iterable[ManifestEntry]) -> None:

@@ -336,7 +336,7 @@ def test_missing_focal_length_is_refused_naming_the_field(tmp_path):
     data = json.loads((tmp_path / "src" / "transforms.json").read_text())
     del data["fl_x"]
     (tmp_path / "src" / "transforms.json").write_text(json.dumps(data))
-    with pytest.raises(BadInputError, match="'fl_x'"):
+    with pytest.raises(BadInputError, match="transforms.json: fl_x: missing"):
         import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan")
 
 
@@ -362,7 +362,7 @@ def test_tampered_transforms_json_is_refused_on_read(tmp_path):
         read_transforms(scan)
     bad_size = dict(good, w=-4)
     scan.transforms_path.write_text(json.dumps(bad_size))
-    with pytest.raises(BadInputError, match="'w' must be"):
+    with pytest.raises(BadInputError, match="transforms.json: w: must lie in"):
         read_transforms(scan)
 
 
@@ -375,3 +375,59 @@ def test_point_ply_is_binary_with_colours(tmp_path):
     rec = np.frombuffer(body, dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])
     np.testing.assert_array_equal(rec["xyz"], xyz.astype(np.float32))
     np.testing.assert_array_equal(rec["rgb"], rgb)
+
+
+def test_colmap_images_are_never_looked_for_above_the_source_folder(tmp_path):
+    cams, _ = colmap_world_cameras()
+    write_colmap(tmp_path / "src", cams)
+    for file in (tmp_path / "src" / "sparse" / "0").iterdir():
+        file.rename(tmp_path / "src" / file.name)
+    (tmp_path / "src" / "images").rename(tmp_path / "images")  # beside the source, not in it
+    with pytest.raises(BadInputError, match="no images/ folder beside it inside"):
+        import_dataset(tmp_path / "src", "colmap", tmp_path / "scan")
+
+
+@pytest.mark.parametrize("link", ["image/000001.png", "image", "cameras.npz"])
+def test_idr_files_linked_out_of_the_source_are_refused_unread(tmp_path, link):
+    write_idr(tmp_path / "src", [np.block([[c[:3, :3], 1000.0 * c[:3, 3:]], [np.array([[0, 0, 0, 1.0]])]])
+                                 for c in ring_cameras(count=3)])
+    path = tmp_path / "src" / link
+    path.rename(tmp_path / "moved")
+    path.symlink_to(tmp_path / "moved")
+    with pytest.raises(BadInputError, match="resolves outside the source folder"):
+        import_dataset(tmp_path / "src", "idr", tmp_path / "scan")
+    assert not (tmp_path / "scan").exists()
+
+
+@pytest.mark.parametrize("change", [{"fl_x": -150.0}, {"fl_y": float("nan")}, {"cx": -1e6}, {"fl_x": True}])
+def test_import_never_writes_negative_or_nan_intrinsics(tmp_path, change):
+    write_nerfstudio(tmp_path / "src", ring_cameras(count=3))
+    data = json.loads((tmp_path / "src" / "transforms.json").read_text())
+    (tmp_path / "src" / "transforms.json").write_text(json.dumps({**data, **change}))
+    with pytest.raises(BadInputError, match="transforms.json: (fl_x|fl_y|cx): "):
+        import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan", QUICK)
+    assert not (tmp_path / "scan").exists()
+
+
+def test_a_singular_idr_projection_and_a_truncated_image_are_clear_errors(tmp_path):
+    write_idr(tmp_path / "src", [np.block([[c[:3, :3], 1000.0 * c[:3, 3:]], [np.array([[0, 0, 0, 1.0]])]])
+                                 for c in ring_cameras(count=3)])
+    arrays = dict(np.load(tmp_path / "src" / "cameras.npz"))
+    np.savez(tmp_path / "src" / "cameras.npz", **{**arrays, "world_mat_1": np.zeros((4, 4))})
+    with pytest.raises(BadInputError, match="world_mat_1: projection matrix is singular"):
+        import_dataset(tmp_path / "src", "idr", tmp_path / "scan")
+    np.savez(tmp_path / "src" / "cameras.npz", **arrays)
+    image = tmp_path / "src" / "image" / "000002.png"
+    image.write_bytes(image.read_bytes()[:200])
+    with pytest.raises(BadInputError, match="000002.png: .*truncated or corrupt"):
+        import_dataset(tmp_path / "src", "idr", tmp_path / "scan", QUICK)
+
+
+def test_write_transforms_refuses_intrinsics_no_lens_has(tmp_path):
+    from station.process.sfm import Intrinsics
+    from station.process.transforms import PosedFrame, Transforms, write_transforms
+
+    frame = PosedFrame("images/a.png", np.eye(4))
+    with pytest.raises(BadInputError, match="transforms.json: fl_x: must be positive"):
+        write_transforms(ScanFolder(tmp_path), Transforms(Intrinsics(W, H, -F, F, W / 2, H / 2), [frame]))
+    assert not ScanFolder(tmp_path).transforms_path.exists()

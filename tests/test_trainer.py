@@ -99,7 +99,7 @@ def test_paths_escaping_the_scan_folder_are_refused_naming_the_field(tmp_path):
     meta = json.loads((tmp_path / "poses" / "transforms.json").read_text())
     meta["frames"][3]["mask_path"] = "../../etc/passwd"
     (tmp_path / "poses" / "transforms.json").write_text(json.dumps(meta))
-    with pytest.raises(BadInputError, match="frame 3.*outside the scan folder"):
+    with pytest.raises(BadInputError, match=r"frames\[3\]\.mask_path.*outside the scan folder"):
         load_scene(tmp_path)
 
 

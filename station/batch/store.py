@@ -84,7 +84,13 @@ class JobStore:
         self.clock = clock
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with closing(self._connect()) as db:
-            db.executescript(_SCHEMA)
+            try:  # a malformed page surfaces here, not in the middle of a later query
+                db.executescript(_SCHEMA)
+                check = db.execute("PRAGMA quick_check").fetchone()[0]
+            except sqlite3.DatabaseError as exc:
+                raise BadInputError(f"{self.path}: not a usable job store ({exc})") from exc
+            if check != "ok":
+                raise BadInputError(f"{self.path}: job store is damaged ({check})")
 
     def _connect(self) -> sqlite3.Connection:
         try:

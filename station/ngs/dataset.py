@@ -2,12 +2,12 @@
 
 nerfstudio stores camera-to-world in OpenGL axes (x right, y up, z back); the rasteriser wants
 world-to-camera in OpenCV axes (x right, y down, z forward), so we flip y and z explicitly.
-Every path the JSON names is untrusted and must resolve inside the scan folder.
+The file is checked by `station.formats.transforms` (the parser process and import use too) and every
+path it names must resolve inside the scan folder.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,12 +16,13 @@ import numpy as np
 import torch
 import trimesh
 
-from station.errors import BadInputError, ScanFolderError
+from station.errors import BadInputError, FormatError, ScanFolderError
+from station.formats.images import DEFAULT_LIMITS, ImageLimits, read_cv2
+from station.formats.jsonfile import read_json_object
+from station.formats.transforms import parse_transforms, pinhole
 from station.scanfolder import ScanFolder
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
-MAX_IMAGES = 10_000
-MAX_PIXELS = 100_000_000
 
 
 @dataclass
@@ -71,15 +72,13 @@ def scene_scale_of(camera_centres: np.ndarray) -> float:
     return float(1.1 * np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
 
 
-def read_image(path: Path, field: str, source: Path) -> np.ndarray:
-    """8- or 16-bit image file -> float32 in [0,1], RGB [H,W,3] or grey [H,W]."""
+def read_image(path: Path, field: str, source: Path, limits: ImageLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """8- or 16-bit image file -> float32 in [0,1], RGB [H,W,3] or grey [H,W]; its size is checked from the header first."""
     if not path.is_file():
-        raise BadInputError(f"{source}: {field} names {path}, which does not exist")
-    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if data is None:
-        raise BadInputError(f"{source}: {field} names {path}, which is not a readable image")
+        raise FormatError(source, field, f"names {path}, which does not exist")
+    data = read_cv2(path, field, limits)
     if data.dtype not in (np.uint8, np.uint16):
-        raise BadInputError(f"{source}: {field} {path} has pixel type {data.dtype}, expected 8 or 16 bit")
+        raise FormatError(path, field, f"pixel type {data.dtype}, expected 8 or 16 bit")
     scale = float(np.iinfo(data.dtype).max)
     data = data.astype(np.float32) / scale
     if data.ndim == 3:
@@ -115,13 +114,6 @@ def downscaled_view(view: View, factor: int) -> View:
     return View(view.name, torch.from_numpy(image), None if mask is None else torch.from_numpy(mask), view.viewmat, K)
 
 
-def _number(frame: dict, meta: dict, key: str, source: Path) -> float:
-    value = frame.get(key, meta.get(key))
-    if not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise BadInputError(f"{source}: field {key!r} missing or not a finite number")
-    return float(value)
-
-
 def read_points(path: Path, source: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """The sparse cloud named by `ply_file_path`: points [P,3] and colours [P,3] or None."""
     try:
@@ -139,58 +131,44 @@ def read_points(path: Path, source: Path) -> tuple[np.ndarray, np.ndarray | None
     return points, colors
 
 
-def load_scene(scan_root: Path, downscale: int = 1, test_every: int = 8, seed: int = 0) -> SceneData:
-    """Read transforms.json, images, masks and the sparse cloud of a posed scan folder."""
+def _inside(scan: ScanFolder, value: str, source: Path, field: str) -> Path:
+    try:
+        return scan.resolve_inside(value)
+    except ScanFolderError as exc:
+        raise FormatError(source, field, f"{value!r} resolves outside the scan folder") from exc
+
+
+def load_scene(scan_root: Path, downscale: int = 1, test_every: int = 8, seed: int = 0,
+               limits: ImageLimits = DEFAULT_LIMITS) -> SceneData:
+    """Read transforms.json (checked by station.formats.transforms), images, masks and the sparse cloud."""
     scan = ScanFolder(scan_root)
-    source = scan.transforms_path
-    meta = scan.read_json(source)
-    frames = meta.get("frames")
-    if not isinstance(frames, list) or not frames:
-        raise BadInputError(f"{source}: field 'frames' missing or empty")
-    if len(frames) > MAX_IMAGES:
-        raise BadInputError(f"{source}: {len(frames)} frames exceeds the limit of {MAX_IMAGES}")
+    source = scan.resolve_inside("poses/transforms.json")  # a link out of the folder is refused, not followed
     if downscale < 1:
         raise BadInputError(f"downscale factor must be >= 1, got {downscale}")
+    doc = parse_transforms(read_json_object(source), source)
     views: list[View] = []
     centres = []
-    for index, frame in enumerate(frames):
-        where = f"{source} frame {index}"
-        if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
-            raise BadInputError(f"{where}: field 'file_path' missing")
-        width, height = int(_number(frame, meta, "w", source)), int(_number(frame, meta, "h", source))
-        if width <= 0 or height <= 0 or width * height > MAX_PIXELS:
-            raise BadInputError(f"{where}: image size {width}x{height} out of range")
-        try:
-            c2w_gl = np.asarray(frame["transform_matrix"], dtype=np.float64)
-        except (KeyError, ValueError, TypeError) as exc:
-            raise BadInputError(f"{where}: field 'transform_matrix' missing or not numeric") from exc
-        if c2w_gl.shape != (4, 4) or not np.isfinite(c2w_gl).all():
-            raise BadInputError(f"{where}: field 'transform_matrix' must be a finite 4x4 matrix")
-        try:
-            image_path = scan.resolve_inside(frame["file_path"])
-            mask_path = scan.resolve_inside(frame["mask_path"]) if frame.get("mask_path") else None
-        except ScanFolderError as exc:
-            raise BadInputError(f"{where}: {exc}") from exc
-        image = read_image(image_path, "file_path", source)
-        if image.ndim != 3 or image.shape[:2] != (height, width):
-            raise BadInputError(f"{where}: {image_path} is {image.shape}, transforms.json says {width}x{height} RGB")
+    for index, frame in enumerate(doc.frames):
+        where = f"frames[{index}]"
+        cam = pinhole(frame.camera, source)
+        image_path = _inside(scan, frame.file_path, source, f"{where}.file_path")
+        mask_path = None if frame.mask_path is None else _inside(scan, frame.mask_path, source, f"{where}.mask_path")
+        image = read_image(image_path, f"{where}.file_path", source, limits)
+        if image.ndim != 3 or image.shape[:2] != (cam.height, cam.width):
+            raise FormatError(source, f"{where}.file_path", f"{image_path} is {image.shape}, "
+                                                            f"transforms.json says {cam.width}x{cam.height} RGB")
         mask = None
         if mask_path is not None:
-            mask = read_image(mask_path, "mask_path", source)
+            mask = read_image(mask_path, f"{where}.mask_path", source, limits)
             mask = mask if mask.ndim == 2 else mask.mean(axis=2)
-            if mask.shape != (height, width):
-                raise BadInputError(f"{where}: mask {mask_path} is {mask.shape}, expected {(height, width)}")
-        K = np.array(
-            [
-                [_number(frame, meta, "fl_x", source), 0.0, _number(frame, meta, "cx", source)],
-                [0.0, _number(frame, meta, "fl_y", source), _number(frame, meta, "cy", source)],
-                [0.0, 0.0, 1.0],
-            ]
-        )
-        c2w_cv = c2w_gl @ OPENGL_TO_OPENCV
+            if mask.shape != (cam.height, cam.width):
+                raise FormatError(source, f"{where}.mask_path", f"{mask_path} is {mask.shape}, "
+                                                                f"expected {(cam.height, cam.width)}")
+        K = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
+        c2w_cv = frame.c2w_gl @ OPENGL_TO_OPENCV
         centres.append(c2w_cv[:3, 3])
         view = View(
-            name=Path(frame["file_path"]).name,
+            name=Path(frame.file_path).name,
             image=torch.from_numpy(image),
             mask=None if mask is None else torch.from_numpy(mask),
             viewmat=torch.from_numpy(np.linalg.inv(c2w_cv)).float(),
@@ -198,11 +176,8 @@ def load_scene(scan_root: Path, downscale: int = 1, test_every: int = 8, seed: i
         )
         views.append(downscaled_view(view, downscale))
     scale = scene_scale_of(np.stack(centres))
-    if meta.get("ply_file_path"):
-        try:
-            ply_path = scan.resolve_inside(meta["ply_file_path"])
-        except ScanFolderError as exc:
-            raise BadInputError(f"{source}: field 'ply_file_path': {exc}") from exc
+    if doc.ply_file_path:
+        ply_path = _inside(scan, doc.ply_file_path, source, "ply_file_path")
         points, colors = read_points(ply_path, source)
     else:  # gsplat's "random" init: a cube around the cameras' mean, sized by the scene
         generator = np.random.default_rng(seed)

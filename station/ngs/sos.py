@@ -17,6 +17,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from station.errors import BadInputError
+from station.ngs.checkpoint_io import load_infill_file, load_surface_file
 from station.ngs.dataset import View, load_scene
 from station.ngs.gaussians import Gaussians, rgb_to_sh
 from station.ngs.infill import Camera, Infill, InfillConfig, build_infill
@@ -123,18 +124,18 @@ def evaluate(surface: Gaussians, infill: Infill, views: list[View], out_dir: Pat
 
 def load_surface(scan: ScanFolder) -> tuple[Gaussians, int]:
     """The trained surface and the downscale it was trained at."""
-    path = scan.model_dir / "surface.pt"
+    path = scan.resolve_inside("model/surface.pt")
     if not path.is_file():
         raise BadInputError(f"{path}: no trained model; run `station train` first")
-    data = torch.load(path, weights_only=True)
+    data = load_surface_file(path)
     return Gaussians.from_state_dict(data["params"]), int(data["downscale"])
 
 
 def scan_infill(scan: ScanFolder, surface: Gaussians, cameras: list[Camera]) -> tuple[Infill, str]:
     """This scan's NGS infill if it has a non-empty one, else one built from the scored surface itself."""
-    path = scan.model_dir / "infill.pt"
+    path = scan.resolve_inside("model/infill.pt")
     if path.is_file():
-        infill = Infill.from_state_dict(torch.load(path, weights_only=True))
+        infill = Infill.from_state_dict(load_infill_file(path))
         if len(infill):
             return infill, "ngs"
     g = {k: v.detach() for k, v in surface.activated().items()}

@@ -17,6 +17,7 @@ from typing import Callable, Literal
 import torch
 
 from station.errors import TrainingError
+from station.ngs.checkpoint_io import load_training_checkpoint
 from station.ngs.dataset import SceneData, View, downscaled_view
 from station.ngs.gaussians import Gaussians, num_sh_bases
 from station.ngs.infill import Camera
@@ -286,7 +287,7 @@ class Trainer:
         path = self.model_dir / CHECKPOINT
         if not path.is_file():
             return 0
-        state = torch.load(path, weights_only=True)  # the scan folder is untrusted: no pickled code
+        state = load_training_checkpoint(path)  # untrusted: weights only, layout checked
         if state.get("inputs", "") != self.inputs:
             log.warning("%s: written from other posed views; training starts over", path)
             return 0

@@ -13,7 +13,8 @@ import cv2
 import numpy as np
 import OpenEXR
 
-from station.errors import BadInputError
+from station.errors import BadInputError, FormatError, InputTooLargeError
+from station.formats.images import DEFAULT_LIMITS, ImageLimits, read_cv2
 from station.scanfolder import atomic_write_with
 
 
@@ -44,9 +45,9 @@ def write_png16(path: Path, linear_rgb: np.ndarray) -> None:
 
 def read_png16(path: Path) -> np.ndarray:
     """Read a PNG written by `write_png16` back to linear float32 RGB [H, W, 3]."""
-    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if data is None or data.ndim != 3 or data.shape[2] != 3:
-        raise BadInputError(f"{path}: missing or not a 3-channel PNG")
+    data = read_cv2(path)
+    if data.ndim != 3 or data.shape[2] != 3:
+        raise FormatError(path, None, f"not a 3-channel PNG (shape {data.shape})")
     scale = 65535.0 if data.dtype == np.uint16 else 255.0
     return srgb_to_linear(data[:, :, ::-1].astype(np.float32) / scale)
 
@@ -70,9 +71,7 @@ def _write_png(path: Path, data: np.ndarray, what: str) -> None:
 
 
 def read_mask_png(path: Path) -> np.ndarray:
-    data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if data is None:
-        raise BadInputError(f"{path}: missing or not an image")
+    data = read_cv2(path)
     if data.ndim == 3:
         data = data[:, :, -1] if data.shape[2] == 4 else data[:, :, 0]
     return data > 127
@@ -91,9 +90,14 @@ def write_exr_half(path: Path, linear_rgb: np.ndarray) -> None:
     atomic_write_with(path, writer)
 
 
-def read_exr(path: Path) -> np.ndarray:
-    """Read the RGB channels of an EXR as float32 [H, W, 3]."""
+def read_exr(path: Path, limits: ImageLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """Read the RGB channels of an EXR as float32 [H, W, 3], its size checked from the header first."""
     try:
+        with OpenEXR.File(str(path), header_only=True) as exr:
+            (x0, y0), (x1, y1) = exr.header()["dataWindow"]
+        if (x1 - x0 + 1) * (y1 - y0 + 1) > limits.max_pixels:
+            raise InputTooLargeError(path, None, f"header says {x1 - x0 + 1}x{y1 - y0 + 1} pixels, "
+                                                 f"beyond the limit of {limits.max_pixels}")
         with OpenEXR.File(str(path)) as exr:
             channels = exr.channels()
             if "RGB" in channels:
@@ -101,5 +105,5 @@ def read_exr(path: Path) -> np.ndarray:
             else:
                 pixels = np.stack([np.array(channels[c].pixels) for c in "RGB"], axis=-1)
     except (OSError, RuntimeError, KeyError) as exc:
-        raise BadInputError(f"{path}: not a readable RGB OpenEXR file ({exc})") from exc
+        raise FormatError(path, None, f"not a readable RGB OpenEXR file ({exc})") from exc
     return pixels.astype(np.float32)

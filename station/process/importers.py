@@ -4,7 +4,8 @@ Readers are pure functions from a source folder to a `SourceDataset` in one conv
 camera-to-world, source units); `import_dataset` then converts units and axes explicitly and
 writes images/, masks/ and poses/ exactly as `pose_scan` would, so training, the gate and the
 report cannot tell an imported scan from one of ours. Sources are untrusted: every path they
-name must stay inside the source folder.
+name or hold, symlinks resolved, must stay inside the source folder (no parent folder is searched),
+and images are size-checked from their headers before decoding.
 
 Conventions read:
 - nerfstudio / NeRF-synthetic `transforms.json`: c2w in OpenGL axes; `fl_x`.. or `camera_angle_x`.
@@ -15,7 +16,9 @@ Conventions read:
 
 from __future__ import annotations
 
+import math
 import time
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -25,13 +28,18 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
-from station.errors import BadInputError
+from station.errors import BadInputError, FormatError, ScanFolderError
+from station.formats.colmap import check_colmap_binary
+from station.formats.images import DEFAULT_LIMITS, ImageLimits, checked_size, open_pil
+from station.formats.jsonfile import read_json_object
+from station.formats.transforms import (CameraFields, NerfTransforms, PinholeCamera, check_camera, check_rotation,
+                                        parse_transforms, pinhole)
 from station.process.colmap_export import colmap_model, write_colmap_model
-from station.process.lens import Lens, lens_from_colmap, lens_from_nerfstudio, undistortion
+from station.process.lens import Lens, lens_from_colmap, lens_from_nerfstudio, split_nerfstudio_lens, undistortion
 from station.process.poses import write_point_ply
 from station.process.rig_model import apply_similarity
 from station.process.sfm import Intrinsics
-from station.process.transforms import MAX_FRAMES, PosedFrame, Transforms, opengl_to_opencv, write_transforms
+from station.process.transforms import PosedFrame, Transforms, opengl_to_opencv, write_transforms
 from station.process.visual_hull import carve, ring_frame
 from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
 
@@ -46,6 +54,7 @@ class ImportSettings:
     units_to_m: float | None = None  # None: the format's default (DTU mm -> m; others assumed metres)
     orient: Orient = "auto"  # keep source axes, or "ring": z along the camera ring's normal, cameras above
     hull_resolution: int = 96
+    image_limits: ImageLimits = DEFAULT_LIMITS  # the largest source image decoded
 
 
 @dataclass
@@ -79,106 +88,113 @@ class ImportReport:
         return asdict(self)
 
 
-def _inside(root: ScanFolder, rel: str, where: str) -> Path:
+def _inside(root: ScanFolder, rel: str | Path, source: object, field: str | None) -> Path:
+    """`rel` resolved (symlinks followed) and refused unless it stays inside the source folder."""
     try:
         return root.resolve_inside(rel)
-    except BadInputError as exc:
-        raise BadInputError(f"{where}: {exc}") from exc
+    except ScanFolderError as exc:
+        raise FormatError(source, field, f"{str(rel)!r} resolves outside the source folder {root.root}") from exc
 
 
-def _finite(data: dict, key: str, where: str) -> float:
-    value = data.get(key)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
-        raise BadInputError(f"{where}: field {key!r} must be a positive number, got {value!r}")
-    return float(value)
+def _listed_images(root: ScanFolder, folder: str) -> list[Path]:
+    """Image files in `folder` of the source, each resolved inside it (a symlink out is refused, not read)."""
+    directory = _inside(root, folder, root.root, folder)
+    if not directory.is_dir():
+        return []
+    return sorted(_inside(root, p, directory, p.name) for p in directory.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
 
 
-def _find_image(path: Path, where: str) -> Path:
+def _find_image(root: ScanFolder, rel: str, source: object, field: str) -> Path:
     """nerfstudio names files with their suffix; NeRF-synthetic leaves it off ('./train/r_0')."""
-    if path.is_file():
-        return path
-    for suffix in IMAGE_SUFFIXES:
-        if path.with_name(path.name + suffix).is_file():
-            return path.with_name(path.name + suffix)
-    raise BadInputError(f"{where}: image {path} not found")
+    for candidate in (rel, *(rel + suffix for suffix in IMAGE_SUFFIXES)):
+        path = _inside(root, candidate, source, field)
+        if path.is_file():
+            return path
+    raise FormatError(source, field, f"image {rel!r} not found in {root.root}")
 
 
-def read_nerfstudio(src: Path) -> SourceDataset:
+def _nerfstudio_camera(doc: NerfTransforms, image: Path, limits: ImageLimits) -> Intrinsics:
+    """The shared camera: fl_x.. as given (fl_y, cx, cy defaulting as nerfstudio's loader does), or NeRF-synthetic's
+    horizontal field of view with the principal point at the centre of the first image."""
+    fields = {f.camera for f in doc.frames}
+    if len(fields) != 1:
+        raise FormatError(doc.source, "frames", "frames have different intrinsics; one shared camera is supported")
+    cam = fields.pop()
+    width, height = checked_size(image, "frames[0].file_path", limits)
+    if cam.fx is None and cam.angle_x is not None:
+        fx = 0.5 * width / math.tan(0.5 * cam.angle_x)
+        cam = CameraFields(width, height, fx, fx, width / 2.0, height / 2.0)
+    w, h = cam.width or width, cam.height or height
+    fy = cam.fy if cam.fy is not None else cam.fx
+    cx, cy = (cam.cx if cam.cx is not None else w / 2.0), (cam.cy if cam.cy is not None else h / 2.0)
+    full = pinhole(CameraFields(w, h, cam.fx, fy, cx, cy), doc.source)
+    return Intrinsics(full.width, full.height, full.fx, full.fy, full.cx, full.cy)
+
+
+def read_nerfstudio(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDataset:
     """transforms.json (nerfstudio) or transforms_train.json (NeRF-synthetic) in `src`."""
     root = ScanFolder(src)
     path = next((src / n for n in ("transforms.json", "transforms_train.json") if (src / n).is_file()), None)
     if path is None:
         raise BadInputError(f"{src}: no transforms.json or transforms_train.json")
-    data = root.read_json(path)
-    where = str(path)
-    frames_raw = data.get("frames")
-    if not isinstance(frames_raw, list) or not frames_raw or len(frames_raw) > MAX_FRAMES:
-        raise BadInputError(f"{where}: field 'frames' must be a list of 1..{MAX_FRAMES} frames")
+    lens_fields, data = split_nerfstudio_lens(read_json_object(_inside(root, path.name, path, None)), path)
+    doc = parse_transforms(data, path)
     frames = []
-    for i, raw in enumerate(frames_raw):
-        fwhere = f"{where}: frames[{i}]"
-        if not isinstance(raw, dict) or not isinstance(raw.get("file_path"), str):
-            raise BadInputError(f"{fwhere}: needs a string 'file_path'")
-        image = _find_image(_inside(root, raw["file_path"], f"{fwhere}.file_path"), f"{fwhere}.file_path")
+    for i, raw in enumerate(doc.frames):
+        image = _find_image(root, raw.file_path, path, f"frames[{i}].file_path")
         mask = None
-        if raw.get("mask_path") is not None:
-            mask = _inside(root, str(raw["mask_path"]), f"{fwhere}.mask_path")
+        if raw.mask_path is not None:
+            mask = _inside(root, raw.mask_path, path, f"frames[{i}].mask_path")
             if not mask.is_file():
-                raise BadInputError(f"{fwhere}.mask_path: {mask} not found")
-        try:
-            gl = np.asarray(raw.get("transform_matrix"), dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise BadInputError(f"{fwhere}.transform_matrix: not numeric ({exc})") from exc
-        if gl.shape not in ((4, 4), (3, 4)) or not np.isfinite(gl).all():
-            raise BadInputError(f"{fwhere}.transform_matrix: must be a finite 4x4 matrix, got shape {gl.shape}")
-        c2w = np.eye(4)
-        c2w[:3, :4] = gl[:3, :4]
-        frames.append(SourceFrame(image, mask, opengl_to_opencv(c2w)))
-    with Image.open(frames[0].image) as img:
-        width, height = img.size
-    if "fl_x" in data or "camera_angle_x" not in data:
-        w, h = int(data.get("w", width)), int(data.get("h", height))
-        fx = _finite(data, "fl_x", where)
-        fy = float(data.get("fl_y", fx))
-        intr = Intrinsics(w, h, fx, fy, float(data.get("cx", w / 2.0)), float(data.get("cy", h / 2.0)))
-    else:
-        # NeRF-synthetic: horizontal field of view only, principal point at the centre.
-        fx = 0.5 * width / np.tan(0.5 * _finite(data, "camera_angle_x", where))
-        intr = Intrinsics(width, height, fx, fx, width / 2.0, height / 2.0)
-    return SourceDataset(intr, frames, lens=lens_from_nerfstudio(data, intr, where))
+                raise FormatError(path, f"frames[{i}].mask_path", f"{mask} not found")
+        frames.append(SourceFrame(image, mask, opengl_to_opencv(raw.c2w_gl)))
+    intr = _nerfstudio_camera(doc, frames[0].image, limits)
+    return SourceDataset(intr, frames, lens=lens_from_nerfstudio(lens_fields, intr, str(path)))
 
 
-def _colmap_dirs(src: Path) -> tuple[Path, Path]:
-    for model in (src, src / "sparse" / "0", src / "sparse", src / "colmap"):
+def _colmap_dirs(root: ScanFolder) -> tuple[Path, Path]:
+    """The model folder and images/ beside it, both inside the source: no parent folder is searched."""
+    src = root.root
+    for rel in (".", "sparse/0", "sparse", "colmap"):
+        model = _inside(root, rel, src, rel)
         if any((model / f"cameras{ext}").is_file() for ext in (".bin", ".txt")):
-            for images in (src / "images", model.parent / "images", model.parent.parent / "images"):
+            for images_rel in dict.fromkeys(("images", str(Path(rel).parent / "images"), str(Path(rel).parent.parent / "images"))):
+                images = _inside(root, images_rel, src, images_rel)
                 if images.is_dir():
                     return model, images
-            raise BadInputError(f"{src}: COLMAP model found in {model} but no images/ folder beside it")
+            raise BadInputError(f"{src}: COLMAP model found in {model} but no images/ folder beside it inside {src}")
     raise BadInputError(f"{src}: no COLMAP model (cameras.bin/.txt) in ., sparse/0, sparse or colmap")
 
 
-def read_colmap(src: Path) -> SourceDataset:
-    model_dir, image_dir = _colmap_dirs(src)
+def read_colmap(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDataset:
+    root = ScanFolder(src)
+    model_dir, image_dir = _colmap_dirs(root)
+    for file in model_dir.iterdir():
+        if file.stem in ("cameras", "images", "points3D", "rigs", "frames"):
+            _inside(root, file, model_dir, file.name)
+    check_colmap_binary(model_dir)
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
-    except (RuntimeError, ValueError) as exc:
-        raise BadInputError(f"{model_dir}: unreadable COLMAP model ({exc})") from exc
+    except Exception as exc:  # pycolmap's C++ reader raises many types on a malformed model
+        raise FormatError(model_dir, None, f"unreadable COLMAP model ({type(exc).__name__}: {exc})") from exc
     if rec.num_cameras() != 1:
         raise BadInputError(f"{model_dir}: {rec.num_cameras()} cameras; one shared camera is supported")
-    lens = lens_from_colmap(next(iter(rec.cameras.values())), str(model_dir))
+    camera = next(iter(rec.cameras.values()))
+    k = camera.calibration_matrix()
+    cam = PinholeCamera(int(camera.width), int(camera.height), float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+    check_camera(cam, f"{model_dir}: camera {camera.camera_id}")
+    lens = lens_from_colmap(camera, str(model_dir))
     intr = lens.intrinsics
-    root = ScanFolder(image_dir)
     frames = []
     for image in sorted(rec.images.values(), key=lambda im: im.name):
         if not image.has_pose:
             continue
-        path = _inside(root, image.name, f"{model_dir}: image {image.name!r}")
+        path = _inside(root, image_dir / image.name, model_dir, f"image {image.name!r}")
         if not path.is_file():
             raise BadInputError(f"{model_dir}: image {image.name!r} not found in {image_dir}")
         w2c = np.eye(4)
         w2c[:3, :4] = image.cam_from_world().matrix()
-        frames.append(SourceFrame(path, None, np.linalg.inv(w2c)))
+        frames.append(SourceFrame(path, None, _rigid_inverse(w2c, model_dir, f"image {image.name!r}")))
     if not frames:
         raise BadInputError(f"{model_dir}: no registered images")
     points = None
@@ -188,40 +204,68 @@ def read_colmap(src: Path) -> SourceDataset:
     return SourceDataset(intr, frames, points, lens)
 
 
-def read_idr(src: Path) -> SourceDataset:
-    """IDR/NeuS layout: cameras.npz (or cameras_sphere.npz), image/, optional mask/."""
+def _rigid_inverse(w2c: np.ndarray, source: object, field: str) -> np.ndarray:
+    """camera-to-world of a world-to-camera that must be finite and rigid (a singular one is refused, not inverted)."""
+    if not np.isfinite(w2c).all():
+        raise FormatError(source, field, "pose holds NaN or infinity")
+    check_rotation(w2c, source, field)
+    c2w = np.eye(4)
+    c2w[:3, :3] = w2c[:3, :3].T
+    c2w[:3, 3] = -w2c[:3, :3].T @ w2c[:3, 3]
+    return c2w
+
+
+def _decompose_projection(p: np.ndarray, source: object, field: str) -> tuple[np.ndarray, np.ndarray]:
+    """P = K [R | t] -> (K with K[2,2] = 1, camera-to-world); a singular or non-finite P is refused."""
+    p = np.asarray(p, dtype=np.float64)[:3, :4]
+    if not np.isfinite(p).all():
+        raise FormatError(source, field, "projection matrix holds NaN or infinity")
+    if not np.linalg.cond(p[:, :3]) < 1e12:  # inf or NaN for an all-zero block
+        raise FormatError(source, field, "projection matrix is singular (its left 3x3 has no inverse)")
+    # OpenCV splits P into K, R (world-to-camera) and the homogeneous centre.
+    k, r, centre = cv2.decomposeProjectionMatrix(p)[:3]
+    if not np.isfinite(k).all() or abs(k[2, 2]) < 1e-12 or abs(centre[3, 0]) < 1e-12:
+        raise FormatError(source, field, "projection matrix does not decompose into K [R | t]")
+    k = k / k[2, 2]
+    c2w = np.eye(4)
+    c2w[:3, :3] = r.T
+    c2w[:3, 3] = centre[:3, 0] / centre[3, 0]
+    check_rotation(c2w, source, field)
+    return k, c2w
+
+
+def read_idr(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDataset:
+    """IDR/NeuS layout: cameras.npz (or cameras_sphere.npz), image/, optional mask/; all inside `src`."""
+    root = ScanFolder(src)
     npz = next((src / n for n in ("cameras.npz", "cameras_sphere.npz") if (src / n).is_file()), None)
     if npz is None:
         raise BadInputError(f"{src}: no cameras.npz or cameras_sphere.npz")
-    images = sorted(p for p in (src / "image").glob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+    npz = _inside(root, npz.name, src, npz.name)
+    images = _listed_images(root, "image")
     if not images:
         raise BadInputError(f"{src / 'image'}: no images")
-    masks = sorted(p for p in (src / "mask").glob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+    masks = _listed_images(root, "mask")
     if masks and len(masks) != len(images):
         raise BadInputError(f"{src / 'mask'}: {len(masks)} masks for {len(images)} images")
     try:
         cams = dict(np.load(npz, allow_pickle=False))
-    except (OSError, ValueError) as exc:
-        raise BadInputError(f"{npz}: unreadable ({exc})") from exc
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise FormatError(npz, None, f"unreadable ({exc})") from exc
     frames, ks = [], []
     for i, image in enumerate(images):
         key = f"world_mat_{i}"
-        if key not in cams or np.shape(cams[key]) not in ((4, 4), (3, 4)):
-            raise BadInputError(f"{npz}: missing or malformed {key!r} for {image.name}")
-        # P = K [R | t]; OpenCV splits it into K, R (world-to-camera) and the homogeneous centre.
-        k, r, centre = cv2.decomposeProjectionMatrix(np.asarray(cams[key], dtype=np.float64)[:3, :4])[:3]
-        k = k / k[2, 2]
-        c2w = np.eye(4)
-        c2w[:3, :3] = r.T
-        c2w[:3, 3] = centre[:3, 0] / centre[3, 0]
+        if key not in cams or np.shape(cams[key]) not in ((4, 4), (3, 4)) or cams[key].dtype.kind not in "iuf":
+            raise FormatError(npz, key, f"missing, or not a numeric 4x4 / 3x4 matrix, for {image.name}")
+        k, c2w = _decompose_projection(cams[key], npz, key)
         frames.append(SourceFrame(image, masks[i] if masks else None, c2w))
         ks.append(k)
     k = np.mean(ks, axis=0)
-    if np.abs(np.array(ks) - k).max() > 1e-3 * k[0, 0]:
-        raise BadInputError(f"{npz}: intrinsics differ between views; one shared camera is supported")
-    with Image.open(images[0]) as img:
-        width, height = img.size
-    return SourceDataset(Intrinsics(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2]), frames)
+    if np.abs(np.array(ks) - k).max() > 1e-3 * abs(k[0, 0]):
+        raise FormatError(npz, "world_mat_*", "intrinsics differ between views; one shared camera is supported")
+    width, height = checked_size(images[0], "image", limits)
+    cam = PinholeCamera(width, height, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+    check_camera(cam, npz)
+    return SourceDataset(Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy), frames)
 
 
 READERS = {"nerfstudio": read_nerfstudio, "colmap": read_colmap, "idr": read_idr}
@@ -236,7 +280,9 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
     src = Path(src).resolve()
     if not src.is_dir():
         raise BadInputError(f"import: source {src} is not a folder")
-    data = READERS[fmt](src)
+    data = READERS[fmt](src, settings.image_limits)
+    camera = data.intrinsics
+    check_camera(PinholeCamera(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy), src)
     units = settings.units_to_m if settings.units_to_m is not None else DEFAULT_UNITS_TO_M[fmt]
     if not units > 0:
         raise BadInputError(f"import: units_to_m must be positive, got {units}")
@@ -255,19 +301,19 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
     frames, masks, images, mask_kind = [], [], [], "none"
     for i, frame in enumerate(data.frames):
         name = f"{i:04d}_{frame.image.stem}.png"
-        with Image.open(frame.image) as img:
+        with open_pil(frame.image, f"frames[{i}] image", settings.image_limits) as img:
             if img.size != (data.intrinsics.width, data.intrinsics.height):
-                raise BadInputError(f"{frame.image}: size {img.size} differs from the camera's "
-                                    f"{data.intrinsics.width}x{data.intrinsics.height}")
+                raise FormatError(frame.image, None, f"size {img.size} differs from the camera's "
+                                                     f"{data.intrinsics.width}x{data.intrinsics.height}")
             rgba = img.convert("RGBA") if img.mode in ("RGBA", "LA", "PA") else None
             rgb = np.asarray(img.convert("RGB"))  # [H, W, 3]
         # kept as given: 255 is object, a value between is its coverage (an alpha channel is straight alpha,
         # so the RGB already holds the object's own colour there, the form our masks and images take too)
         coverage = None
         if frame.mask is not None:
-            with Image.open(frame.mask) as m:
+            with open_pil(frame.mask, f"frames[{i}] mask", settings.image_limits) as m:
                 if m.size != img.size:
-                    raise BadInputError(f"{frame.mask}: mask size {m.size} differs from its image's {img.size}")
+                    raise FormatError(frame.mask, None, f"mask size {m.size} differs from its image's {img.size}")
                 coverage = np.asarray(m.convert("L"))
             mask_kind = "files"
         elif rgba is not None:

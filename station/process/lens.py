@@ -9,6 +9,7 @@ so OpenCV (centres at integers) is handed principal points moved by half a pixel
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 
 import cv2
@@ -105,6 +106,25 @@ def _lens(intrinsics: Intrinsics, model: str, data: dict, where: str) -> Lens:
         return Lens(intrinsics)
     order = FISHEYE_ORDER if model == "OPENCV_FISHEYE" else OPENCV_ORDER
     return Lens(intrinsics, model, tuple(_coefficient(data, k, where) for k in order))
+
+
+def split_nerfstudio_lens(data: object, source: object) -> tuple[dict, object]:
+    """A transforms.json's lens keys (file-wide, or per frame when every frame agrees) and the document
+    without them, for the pinhole parser; frames with different lenses are refused."""
+    if not isinstance(data, dict):
+        return {}, data  # the pinhole parser refuses it with its own message
+    keys = ("camera_model", "k1", "k2", "k3", "k4", "p1", "p2")
+    lens = {k: data[k] for k in keys if k in data}
+    rest = {k: v for k, v in data.items() if k not in keys}
+    if isinstance(data.get("frames"), list):
+        per_frame = [{**lens, **{k: f[k] for k in keys if k in f}} for f in data["frames"] if isinstance(f, dict)]
+        if len({json.dumps(p, sort_keys=True, default=str) for p in per_frame}) > 1:
+            raise BadInputError(f"{source}: frames have different lenses (camera_model, k1.., p1..); "
+                                "one shared camera is supported")
+        lens = per_frame[0] if per_frame else lens
+        rest["frames"] = [{k: v for k, v in f.items() if k not in keys} if isinstance(f, dict) else f
+                          for f in data["frames"]]
+    return lens, rest
 
 
 def lens_from_nerfstudio(data: dict, intrinsics: Intrinsics, where: str) -> Lens:

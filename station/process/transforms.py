@@ -2,8 +2,8 @@
 
 nerfstudio stores camera-to-world in OpenGL axes (x right, y up, z back); COLMAP and OpenCV use
 y down, z forward. Inside the station every pose is OpenCV; the flip happens here and only here.
-The file comes from an untrusted scan folder, so every path it names must resolve inside the
-folder, the counts must be sane, and every field is checked before use.
+The file comes from an untrusted scan folder: its fields are checked by `station.formats.transforms`
+(the one parser process, ngs and import share) and every path it names must resolve inside the folder.
 """
 
 from __future__ import annotations
@@ -13,14 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from station.errors import BadInputError
+from station.errors import FormatError, ScanFolderError
+from station.formats.jsonfile import read_json_object
+from station.formats.transforms import PinholeCamera, check_camera, check_rotation, parse_transforms, shared_pinhole
 from station.process.sfm import Intrinsics
 from station.rig_geometry import opencv_to_opengl
 from station.scanfolder import ScanFolder, atomic_write_json
-
-MAX_FRAMES = 100_000
-MAX_IMAGE_SIDE = 65_536
-
 
 def opengl_to_opencv(c2w: np.ndarray) -> np.ndarray:
     """Inverse of `opencv_to_opengl` (the flip of the y and z camera axes is its own inverse)."""
@@ -42,8 +40,16 @@ class Transforms:
 
 
 def write_transforms(scan: ScanFolder, transforms: Transforms) -> Path:
-    """Write poses/transforms.json. Paths are relative to the scan folder (images/..., masks/...), as the contract says."""
+    """Write poses/transforms.json. Paths are relative to the scan folder (images/..., masks/...), as the contract says.
+    The camera and poses pass the reader's checks first: no stage may write what training would refuse."""
     intr = transforms.intrinsics
+    source = scan.transforms_path
+    check_camera(PinholeCamera(int(intr.width), int(intr.height), intr.fx, intr.fy, intr.cx, intr.cy), source)
+    for i, frame in enumerate(transforms.frames):
+        c2w = np.asarray(frame.c2w, dtype=np.float64)
+        if c2w.shape != (4, 4) or not np.isfinite(c2w).all():
+            raise FormatError(source, f"frames[{i}].transform_matrix", "not a finite 4x4 matrix")
+        check_rotation(c2w, source, f"frames[{i}].transform_matrix")
     data: dict = {
         "camera_model": "OPENCV",
         "fl_x": intr.fx,
@@ -72,62 +78,31 @@ def write_transforms(scan: ScanFolder, transforms: Transforms) -> Path:
     return scan.transforms_path
 
 
-def _number(data: dict, key: str, where: str, positive: bool = True) -> float:
-    value = data.get(key)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-        raise BadInputError(f"{where}: field {key!r} must be a finite number, got {value!r}")
-    if positive and value <= 0:
-        raise BadInputError(f"{where}: field {key!r} must be positive, got {value!r}")
-    return float(value)
-
-
-def _relative_path(scan: ScanFolder, value: object, where: str, must_exist: bool) -> str:
+def _relative_path(scan: ScanFolder, value: str, source: Path, field: str, must_exist: bool) -> str:
     """transforms.json paths are relative to the scan folder (nerfstudio: to the file's data root)."""
-    if not isinstance(value, str) or not value:
-        raise BadInputError(f"{where}: expected a relative path string, got {value!r}")
-    resolved = scan.resolve_inside(value)
+    try:
+        resolved = scan.resolve_inside(value)
+    except ScanFolderError as exc:
+        raise FormatError(source, field, f"{value!r} resolves outside the scan folder") from exc
     if must_exist and not resolved.is_file():
-        raise BadInputError(f"{where}: {value!r} does not exist in {scan.root}")
+        raise FormatError(source, field, f"{value!r} does not exist in {scan.root}")
     return value
 
 
 def read_transforms(scan: ScanFolder, check_files: bool = True) -> Transforms:
-    """Read and validate poses/transforms.json; poses come back in OpenCV axes."""
-    path = scan.transforms_path
-    data = scan.read_json(path)
-    where = str(path)
-    width, height = int(_number(data, "w", where)), int(_number(data, "h", where))
-    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
-        raise BadInputError(f"{where}: image size {width}x{height} is implausible")
-    intr = Intrinsics(
-        width, height, _number(data, "fl_x", where), _number(data, "fl_y", where),
-        _number(data, "cx", where), _number(data, "cy", where),
-    )
-    frames_raw = data.get("frames")
-    if not isinstance(frames_raw, list) or not frames_raw:
-        raise BadInputError(f"{where}: field 'frames' must be a non-empty list")
-    if len(frames_raw) > MAX_FRAMES:
-        raise BadInputError(f"{where}: {len(frames_raw)} frames exceeds the limit of {MAX_FRAMES}")
+    """Read and validate poses/transforms.json (station.formats.transforms); poses come back in OpenCV axes."""
+    source = scan.resolve_inside("poses/transforms.json")  # a link out of the folder is refused, not followed
+    doc = parse_transforms(read_json_object(source), source)
+    cam = shared_pinhole(doc)
     frames = []
-    for i, raw in enumerate(frames_raw):
-        fwhere = f"{where}: frames[{i}]"
-        if not isinstance(raw, dict):
-            raise BadInputError(f"{fwhere}: must be an object")
-        file_path = _relative_path(scan, raw.get("file_path"), f"{fwhere}.file_path", check_files)
+    for i, frame in enumerate(doc.frames):
+        file_path = _relative_path(scan, frame.file_path, source, f"frames[{i}].file_path", check_files)
         mask_path = None
-        if raw.get("mask_path") is not None:
-            mask_path = _relative_path(scan, raw["mask_path"], f"{fwhere}.mask_path", check_files)
-        try:
-            mat = np.asarray(raw.get("transform_matrix"), dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise BadInputError(f"{fwhere}.transform_matrix: not a numeric matrix ({exc})") from exc
-        if mat.shape != (4, 4) or not np.isfinite(mat).all():
-            raise BadInputError(f"{fwhere}.transform_matrix: must be a finite 4x4 matrix, got shape {mat.shape}")
-        rot = mat[:3, :3]
-        if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-4) or np.linalg.det(rot) < 0:
-            raise BadInputError(f"{fwhere}.transform_matrix: upper 3x3 is not a rotation")
-        frames.append(PosedFrame(file_path, opengl_to_opencv(mat), mask_path))
-    ply = data.get("ply_file_path")
+        if frame.mask_path is not None:
+            mask_path = _relative_path(scan, frame.mask_path, source, f"frames[{i}].mask_path", check_files)
+        frames.append(PosedFrame(file_path, opengl_to_opencv(frame.c2w_gl), mask_path))
+    ply = doc.ply_file_path
     if ply is not None:
-        ply = _relative_path(scan, ply, f"{where}: ply_file_path", check_files)
+        ply = _relative_path(scan, ply, source, "ply_file_path", check_files)
+    intr = Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
     return Transforms(intr, frames, ply)
