@@ -262,6 +262,10 @@ def test_calibrating_the_rig_from_a_free_sfm_run_of_a_scan_recovers_the_true_rig
     # median, 0.05-0.09 % centre; the targets for poses are 0.1 deg and 0.2 %.
     assert np.median(rot) < 0.15 and max(rot) < 0.25
     assert max(ctr) < 0.002
+    # the lens the free run ends with joins the model (the simulated camera is a pinhole: nothing to undistort)
+    assert model.distortion is not None and model.intrinsics == model.lens().intrinsics
+    assert model.intrinsics.width == 640 and model.intrinsics.fx == pytest.approx(2 * RIG.focal_px, rel=0.01)
+    assert RigModel.from_dict(model.to_dict()).lens() == model.lens() and not report.lens["undistorted"]
 
 
 @pytest.mark.slow
