@@ -216,8 +216,10 @@ def pinhole_for(lens: Lens, samples: int = 256) -> Intrinsics:
     """The pinhole camera, same size, square pixels, whose every pixel lands inside the distorted image."""
     i = lens.intrinsics
     us, vs = np.linspace(0.5, i.width - 0.5, samples), np.linspace(0.5, i.height - 0.5, samples)
-    edge = {"left": np.column_stack([np.full(samples, 0.5), vs]), "right": np.column_stack([np.full(samples, i.width - 0.5), vs]),
-            "top": np.column_stack([us, np.full(samples, 0.5)]), "bottom": np.column_stack([us, np.full(samples, i.height - 0.5)])}
+    left, right = np.full(samples, 0.5), np.full(samples, i.width - 0.5)
+    top, bottom = np.full(samples, 0.5), np.full(samples, i.height - 0.5)
+    edge = {"left": np.column_stack([left, vs]), "right": np.column_stack([right, vs]),
+            "top": np.column_stack([us, top]), "bottom": np.column_stack([us, bottom])}
     n = {side: undistort_points(lens, pts) for side, pts in edge.items()}
     x0, x1 = n["left"][:, 0].max(), n["right"][:, 0].min()
     y0, y1 = n["top"][:, 1].max(), n["bottom"][:, 1].min()
