@@ -1,4 +1,4 @@
-"""Process benchmark: develop speed against rawpy's own default, and posing time and error against views.
+"""Process benchmark: develop speed against rawpy, posing error against views, training views against the truth.
 
 (a) Develop: seconds per megapixel of `develop_raw` (LibRaw AHD, linear 16-bit, colour matrix, stats)
     against rawpy's default `postprocess()` (AHD, 8-bit sRGB, auto-bright) on the same file, in the
@@ -12,12 +12,18 @@
     after a similarity alignment to the truth.
 
     python bench/process.py [--size 480x360] [--views 40,120,240] [--sfm-views 40,120,240] [--repeats 3]
+(c) Image fidelity (`--fidelity`): simulated scans (640x480 by default, training images at 320) developed
+    and masked by `develop_scan`; per ring, the training views scored against the truth images
+    (sim/fidelity.py: PSNR on the stone, in the silhouette band and on the plate, dE00 on the stone,
+    false-colour pixels on the silhouette, mask IoU), beside the develop and matte seconds per view.
+
+    python bench/process.py --fidelity [--stones 0,pale:3] [--rings 6] [--azimuths 40] [--fidelity-size 640x480]
 
 The posing scan is 480x360 by default, not the 640x480 the posing tests use: at 640x480, rendering
 and developing the 246 frames alone took 7 minutes on the shared 2-core bench machine, and posing
 240 views grows with the square of the view count (exhaustive matching), past a 15-minute budget.
 
-Prints tables and writes bench/results/process.json.
+Prints tables and writes bench/results/process.json (process_fidelity.json with --fidelity).
 """
 
 from __future__ import annotations
@@ -41,22 +47,21 @@ from rich.table import Table
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.masks import developed  # noqa: E402
 from sim.dng import dng_bytes  # noqa: E402
+from sim.fidelity import ring_summary, scan_fidelity  # noqa: E402
+from sim.rig import direct_scan, make_stone  # noqa: E402
 from sim.scene import World, render  # noqa: E402
 from sim.sensor import SensorModel  # noqa: E402
 from sim.stone import procedural_stone  # noqa: E402
-from sim.truth import write_truth_frame  # noqa: E402
 from station.capture.plan import default_elevations  # noqa: E402
 from station.process.develop import DevelopSettings, develop_raw  # noqa: E402
-from station.process.develop_stage import develop_scan  # noqa: E402
+from station.process.develop_stage import ProcessSettings, develop_scan  # noqa: E402
 from station.process.masks import compute_mask  # noqa: E402
 from station.process.poses import PoseSettings, pose_scan  # noqa: E402
 from station.process.rig_model import RigModel, rotation_angle_deg, umeyama  # noqa: E402
 from station.process.sfm import SfmSettings  # noqa: E402
 from station.process.transforms import read_transforms  # noqa: E402
 from station.rig_geometry import RigGeometry  # noqa: E402
-from station.scanfolder import (  # noqa: E402
-    ManifestEntry, ScanFolder, atomic_write_bytes, atomic_write_json, sha256_bytes,
-)
+from station.scanfolder import ScanFolder, atomic_write_json  # noqa: E402
 
 SHARED_RAW = Path(__file__).resolve().parents[2] / "shared" / "data" / "raw"
 RAW_SUFFIXES = (".dng", ".crw", ".cr2", ".nef", ".arw", ".kdc", ".orf", ".raf", ".rw2")
@@ -131,26 +136,58 @@ def _frame_name(e_index: int, a_index: int) -> str:
 
 
 def make_scan(root: Path, rig: RigGeometry, elevations: tuple[float, ...], seed: int = 11) -> ScanFolder:
-    """A 6 x 40 scan as capture leaves it: raw DNGs (one plate per elevation), manifest, scan.json, sim_truth/."""
-    world = World(procedural_stone(seed, size_m=0.09, look="speckled"), rig)
-    sensor = SensorModel()
-    scan = ScanFolder(root)
-    entries = []
-    for i, elevation in enumerate(elevations):
-        for j in [None, *range(AZIMUTHS)]:
-            azimuth = 0.0 if j is None else 360.0 * j / AZIMUTHS
-            name = f"raw/{'plate_e%d' % i if j is None else _frame_name(i, j)}.dng"
-            out = render(world, elevation, azimuth, stone_present=j is not None)
-            rng = np.random.default_rng([seed, i, AZIMUTHS if j is None else j])
-            data = dng_bytes(sensor.expose(out.radiance, EXPOSURE_S, 100, rng), sensor)
-            atomic_write_bytes(scan.root / name, data)
-            kind = "plate" if j is None else "shot"
-            entries.append(ManifestEntry(name, sha256_bytes(data), elevation, azimuth, kind, EXPOSURE_S, 100, ""))
-            write_truth_frame(scan.root, world, name, elevation, azimuth, mask=out.mask)
-    scan.write_manifest(entries)
-    atomic_write_json(scan.scan_json, {"rig": rig.to_dict(),
-                                       "plan": {"elevations_deg": list(elevations), "azimuths": AZIMUTHS}})
-    return scan
+    """A 6 x 40 scan of a 9 cm speckled stone as capture leaves it (sim.rig.direct_scan)."""
+    stone = procedural_stone(seed, size_m=0.09, look="speckled")
+    return direct_scan(root, stone, rig, elevations, AZIMUTHS, exposure_s=EXPOSURE_S, seed=seed)
+
+
+def fidelity_rows(work: Path, stones: list[str], size: tuple[int, int], training_width: int, rings: int,
+                  azimuths: int) -> list[dict]:
+    """Per stone and ring: the training views against the truth, and the develop and matte seconds per view."""
+    rows = []
+    for spec in stones:
+        root = work / f"fidelity_{Path(spec).stem.replace(':', '_')}_{size[0]}x{size[1]}_{rings}x{azimuths}"
+        if (root / "manifest.jsonl").is_file():  # kept from an earlier run (--keep-scans): developed again
+            scan = ScanFolder(root)
+        else:
+            scan = direct_scan(root, make_stone(spec), RigGeometry().scaled(*size), default_elevations(rings),
+                               azimuths, exposure_s=EXPOSURE_S, seed=5)
+        report = develop_scan(scan, ProcessSettings(training_width=training_width))
+        shots = len([f for f in report.frames if f.kind == "shot"])
+        for elevation, views in scan_fidelity(scan).items():
+            rows.append({"stone": spec, "elevation_deg": elevation, **ring_summary(views),
+                         "develop_s_per_view": round((report.seconds - report.matte_seconds) / shots, 3),
+                         "matte_s_per_view": round(report.matte_seconds / shots, 3)})
+        print(f"  scored {spec}: develop+matte {report.seconds:.0f} s", flush=True)
+    return rows
+
+
+def fidelity_main(args: argparse.Namespace, console: Console) -> None:
+    started, load_before = time.perf_counter(), os.getloadavg()
+    size = tuple(int(v) for v in args.fidelity_size.split("x"))
+    with tempfile.TemporaryDirectory(prefix="bench-fidelity-") as tmp:
+        work = args.keep_scans or Path(tmp)
+        rows = fidelity_rows(work, args.stones.split(","), size, args.training_width, args.rings, args.azimuths)
+    table = Table(title=f"training views against the truth: {size[0]}x{size[1]} cut, trained at {args.training_width}")
+    for column in ("stone", "ring deg", "views", "false colour /view (max)", "PSNR stone", "PSNR band", "PSNR plate",
+                   "dE00 stone", "IoU", "develop s/view", "matte s/view"):
+        table.add_column(column)
+    for r in rows:
+        table.add_row(r["stone"], f"{r['elevation_deg']:g}", str(r["views"]),
+                      f"{r['false_colour_per_view']:.2f} ({r['false_colour_max']})", f"{r['psnr_stone_db']:.2f}",
+                      f"{r['psnr_band_db']:.2f}", f"{r['psnr_plate_db']:.2f}", f"{r['delta_e00_stone']:.3f}",
+                      f"{r['iou_mean']:.4f}", f"{r['develop_s_per_view']:.3f}", f"{r['matte_s_per_view']:.3f}")
+    console.print(table)
+    result = {"benchmark": "process_fidelity", "label": args.label,
+              "machine": {"cpus": os.cpu_count(), "load_average_before": load_before,
+                          "load_average_after": os.getloadavg(),
+                          "note": "shared machine: other jobs ran alongside, so times are inflated and noisy"},
+              "scan": {"size": list(size), "training_width": args.training_width, "rings": args.rings,
+                       "azimuths": args.azimuths, "elevations_deg": list(default_elevations(args.rings))},
+              "metrics": "sim/fidelity.py", "rows": rows, "total_s": round(time.perf_counter() - started, 1)}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    console.print(f"wrote {args.out} in {result['total_s']:.0f} s")
 
 
 # views -> (elevation ring indices into the 6 planned rings, azimuths per ring)
@@ -249,11 +286,24 @@ def main() -> None:
     parser.add_argument("--sfm-max-runtime", type=float, default=180.0, help="COLMAP mapping bound per run (s)")
     parser.add_argument("--develop-sizes", default="640x480,2000x1500,4000x3000")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "process.json")
+    parser.add_argument("--fidelity", action="store_true", help="only (c): the training views against the truth")
+    parser.add_argument("--stones", default="0,pale:3,dark:7,speckled:11", help="stone specs (sim.rig.make_stone)")
+    parser.add_argument("--fidelity-size", default="640x480")
+    parser.add_argument("--training-width", type=int, default=320)
+    parser.add_argument("--rings", type=int, default=6)
+    parser.add_argument("--azimuths", type=int, default=40)
+    parser.add_argument("--label", default="", help="what this run measured, kept in the JSON")
+    parser.add_argument("--keep-scans", type=Path, default=None, help="make the fidelity scans here and reuse them")
+    parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
+    console = Console(width=140)
+    if args.fidelity:
+        args.out = args.out or Path(__file__).parent / "results" / "process_fidelity.json"
+        fidelity_main(args, console)
+        return
+    args.out = args.out or Path(__file__).parent / "results" / "process.json"
     width, height = (int(v) for v in args.size.split("x"))
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.develop_sizes.split(",")]
-    console = Console(width=140)
     started, load_before = time.perf_counter(), os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="bench-process-") as tmp:
         work = Path(tmp)

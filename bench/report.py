@@ -62,7 +62,12 @@ def kind_of(data: dict) -> str:
         return "cross_view"
     if "develop" in data and "posing" in data:
         return "process"
+    rows = data.get("rows")
+    if isinstance(rows, list) and rows and isinstance(rows[0], dict) and "psnr_band_db" in rows[0]:
+        return "fidelity"
     configs = data.get("configs") or [{}]
+    if "nodes" in configs[0] and "scans_per_hour" in configs[0]:
+        return "batch_nodes"
     if "step_ms" in configs[0]:
         return "raster"
     if "scans_per_hour" in configs[0]:
@@ -214,6 +219,28 @@ def batch_section(name: str, data: dict) -> Section:
     return lines + [", ".join(f"{k} {v}" for k, v in extra.items()) + ".", ""] if extra else lines, {}
 
 
+def fidelity_section(name: str, data: dict) -> Section:
+    rows = [[r["stone"], num(r["elevation_deg"], 0), r["views"], num(r["false_colour_per_view"], 2),
+             num(r["psnr_band_db"], 2), num(r["psnr_stone_db"], 2), num(r["psnr_plate_db"], 2),
+             num(r["delta_e00_stone"], 3), num(r["iou_mean"], 4), num(r["matte_s_per_view"], 2)] for r in data["rows"]]
+    scan = data["scan"]
+    lines = [f"{data.get('label', name)}. Shot at {scan['size'][0]}×{scan['size'][1]}, trained at "
+             f"{scan['training_width']} px wide; metrics defined in `{data.get('metrics', 'sim/fidelity.py')}`.", ""]
+    lines += table(["stone", "ring °", "views", "false colour / view", "band PSNR dB", "stone PSNR dB",
+                    "plate PSNR dB", "ΔE00", "IoU", "matte s / view"], rows)
+    return lines, {}
+
+
+def batch_nodes_section(name: str, data: dict) -> Section:
+    rows = [[c["nodes"], c["scans"], num(c["wall_s"], 1), num(c["scans_per_hour"], 0),
+             ", ".join(sorted(set(c["verdicts"])))] for c in data["configs"]]
+    scan = data["scan"]
+    lines = [f"Ray {data.get('ray', '?')}, {scan['elevations']}×{scan['azimuths']} scans at {scan['size'][0]}×"
+             f"{scan['size'][1]}, preset {scan['preset']}. {data['machine'].get('note', '')}", ""]
+    lines += table(["nodes", "scans", "wall s", "scans / hour", "verdicts"], rows)
+    return lines, {}
+
+
 def scan_section(name: str, data: dict) -> Section:
     rows = [[c["mode"], c["frames"], num(c["wall_s"], 1), num(c["motion_s"], 1), num(c["exposure_s"], 1),
              num(c["overhead_s"], 1), num(c["frames_per_min"], 1)] for c in data["configs"]]
@@ -243,10 +270,12 @@ SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
     "raster": ("Rasteriser speed", raster_section),
     "ngs": ("NGS against its baselines", ngs_section),
     "mesh": ("Mesh surface", mesh_section),
+    "fidelity": ("Training views against the truth", fidelity_section),
     "batch": ("Batch throughput", batch_section),
+    "batch_nodes": ("Batch throughput", batch_nodes_section),
     "other": ("Other results", other_section),
 }
-SCRIPTS = {"cross_view": "cross_view", "ngs": "ngs"}
+SCRIPTS = {"cross_view": "cross_view", "ngs": "ngs", "fidelity": "process", "batch_nodes": "batch"}
 
 
 def load(path: Path) -> dict:

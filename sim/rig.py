@@ -4,28 +4,31 @@ The real drivers talk to it through their real code paths (pyserial on a `fakegr
 pty; pyusb through a pure-Python backend), so a scan on this rig exercises the same code as a
 scan on hardware. The camera renders the view at the emulated turntable's physical position at
 the moment of exposure. The simulated operator takes the stone off for the plates and puts it
-back. After a scan, `write_truth` records what really was in front of the camera.
+back. After a scan, `write_truth` records what really was in front of the camera, the truth image
+of each shot kept from its exposure (staged in a temporary folder until the scan's file names are known).
 """
 
 from __future__ import annotations
 
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
+from sim.dng import dng_bytes
 from sim.grbl_links import FakeTurntable, start_fake_turntable
 from sim.ptp_camera import CaptureSettings, SimPtpCamera
-from sim.scene import World, frame_source
+from sim.scene import World, frame_source, render
 from sim.sensor import SensorModel
 from sim.stone import Stone, load_stone_mesh, procedural_stone
-from sim.truth import write_truth_frame
+from sim.truth import TruthImage, add_truth_image_file, write_truth_frame, write_truth_image
 from sim.usb_backend import SimUsbBackend
 from station.capture.ptp import PtpCamera, open_ptp_camera
 from station.capture.still import PtpStillCamera
 from station.rig_geometry import RigGeometry
-from station.scanfolder import ScanFolder
+from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, atomic_write_json, sha256_bytes
 from station.turntable.grbl import Turntable, TurntableConfig
 
 
@@ -37,6 +40,9 @@ def make_stone(spec: str | None, seed: int = 0) -> Stone:
         return load_stone_mesh(Path(spec), seed=seed)
     look, _, number = spec.rpartition(":")
     return procedural_stone(int(number), look=look or "grey")  # type: ignore[arg-type]
+
+
+Shot = tuple[float, float, np.ndarray, Path]  # (elevation_deg, azimuth_deg, true mask, staged truth image)
 
 
 class SimOperator:
@@ -59,7 +65,8 @@ class SimRig:
     turntable: Turntable
     ptp: PtpCamera
     operator: SimOperator
-    shots: list[tuple[float, float, np.ndarray]] = field(default_factory=list)  # (elev, azim, mask) as exposed
+    staging: tempfile.TemporaryDirectory
+    shots: list[Shot] = field(default_factory=list)  # as exposed
 
     @property
     def camera(self) -> PtpStillCamera:
@@ -73,24 +80,27 @@ class SimRig:
         Frames shot by an earlier (killed) run were not seen by this rig and are rendered anew.
         """
         for entry in scan.read_manifest():
-            elevation, azimuth, mask = entry.elevation_deg, entry.azimuth_deg, None
+            elevation, azimuth, mask, staged = entry.elevation_deg, entry.azimuth_deg, None, None
             if entry.kind == "plate":
                 mask = np.zeros((self.world.rig.height, self.world.rig.width), dtype=bool)
             else:
                 exposed = _nearest_shot(self.shots, entry.elevation_deg, entry.azimuth_deg)
                 if exposed is not None:
-                    elevation, azimuth, mask = exposed
+                    elevation, azimuth, mask, staged = exposed
             was_present = self.world.stone_present
             self.world.stone_present = entry.kind == "shot"
             try:
                 write_truth_frame(scan.root, self.world, entry.file, elevation, azimuth, mask=mask)
             finally:
                 self.world.stone_present = was_present
+            if staged is not None:
+                add_truth_image_file(scan.root, entry.file, staged)
 
     def close(self) -> None:
         self.ptp.close()
         self.turntable.close()
         self.board.close()
+        self.staging.cleanup()
 
     def __enter__(self) -> "SimRig":
         return self
@@ -99,9 +109,7 @@ class SimRig:
         self.close()
 
 
-def _nearest_shot(
-    shots: list[tuple[float, float, np.ndarray]], elevation_deg: float, azimuth_deg: float, tolerance_deg: float = 0.5
-) -> tuple[float, float, np.ndarray] | None:
+def _nearest_shot(shots: list[Shot], elevation_deg: float, azimuth_deg: float, tolerance_deg: float = 0.5) -> Shot | None:
     """The exposure taken closest to a planned pose (latest wins, as a re-shot replaces a frame)."""
     best, best_error = None, tolerance_deg
     for shot in shots:
@@ -122,15 +130,19 @@ def build_sim_rig(
 ) -> SimRig:
     """Start the emulators, connect the real drivers to them, and return the assembled rig."""
     world = World(stone, rig=rig)
+    sensor = SensorModel()
     board = start_fake_turntable(route, time_scale=time_scale, seed=seed)
-    render = frame_source(world, board.firmware.position, SensorModel(), seed)
-    shots: list[tuple[float, float, np.ndarray]] = []
+    render = frame_source(world, board.firmware.position, sensor, seed)
+    staging = tempfile.TemporaryDirectory(prefix="sim-truth-")
+    shots: list[Shot] = []
 
     def shoot(settings: CaptureSettings) -> tuple[bytes, str]:
         data, name = render(settings)
         if world.stone_present:
             elevation, azimuth = render.last_pose
-            shots.append((elevation, azimuth, render.last.mask))
+            staged = Path(staging.name) / f"{render.count:05d}.exr"
+            write_truth_image(staged, TruthImage.of(render.last, sensor))
+            shots.append((elevation, azimuth, render.last.mask, staged))
         return data, name
 
     camera_device = SimPtpCamera(shoot, time_scale=time_scale)
@@ -138,6 +150,33 @@ def build_sim_rig(
         turntable = Turntable.connect(board.port, TurntableConfig())
     except BaseException:
         board.close()
+        staging.cleanup()
         raise
     ptp = open_ptp_camera(backend=SimUsbBackend(camera_device))
-    return SimRig(world, board, camera_device, turntable, ptp, SimOperator(world), shots)
+    return SimRig(world, board, camera_device, turntable, ptp, SimOperator(world), staging, shots)
+
+
+def direct_scan(
+    root: Path, stone: Stone, rig: RigGeometry, elevations: tuple[float, ...], azimuths: int,
+    *, exposure_s: float = 1 / 30, seed: int = 0,
+) -> ScanFolder:
+    """A scan as capture leaves it (raw DNGs with one plate per ring, manifest, scan.json, sim_truth/), rendered
+    straight at the planned poses without the emulated board and camera: quick, for benches and tests."""
+    world, sensor, scan = World(stone, rig), SensorModel(), ScanFolder(root)
+    entries = []
+    for i, elevation in enumerate(elevations):
+        for j in [None, *range(azimuths)]:
+            azimuth = 0.0 if j is None else 360.0 * j / azimuths
+            name = f"raw/{f'plate_e{i}' if j is None else f'e{i}_a{j:03d}'}.dng"
+            out = render(world, elevation, azimuth, stone_present=j is not None)
+            rng = np.random.default_rng([seed, i, azimuths if j is None else j])
+            data = dng_bytes(sensor.expose(out.radiance, exposure_s, 100, rng), sensor)
+            atomic_write_bytes(scan.root / name, data)
+            kind = "plate" if j is None else "shot"
+            entries.append(ManifestEntry(name, sha256_bytes(data), elevation, azimuth, kind, exposure_s, 100, ""))
+            image = TruthImage.of(out, sensor) if j is not None else None
+            write_truth_frame(scan.root, world, name, elevation, azimuth, mask=out.mask, image=image)
+    scan.write_manifest(entries)
+    atomic_write_json(scan.scan_json, {"rig": rig.to_dict(), "plan": {"elevations_deg": list(elevations),
+                                                                      "azimuths": azimuths}})
+    return scan

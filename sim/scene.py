@@ -173,6 +173,7 @@ class RenderOut:
     mask: np.ndarray  # [H, W] bool, stone covers at least half the pixel
     depth: np.ndarray  # [H, W] float32, camera z-depth of the stone (m), 0 where no stone
     alpha: np.ndarray  # [H, W] float32, stone coverage of the pixel
+    stone: np.ndarray  # [H, W, 3] float32, the stone alone on black: its radiance premultiplied by its coverage
 
 
 def _cosine_hemisphere(n: int) -> np.ndarray:
@@ -340,6 +341,7 @@ def render(
         mask=alpha >= 0.5,
         depth=np.where(alpha > 0, depth_px, 0.0).astype(np.float32),
         alpha=alpha.astype(np.float32),
+        stone=_box_down(radiance * covered[:, None], h, w, s).astype(np.float32),
     )
 
 

@@ -1,23 +1,30 @@
 """sim_truth/: what a simulated scan really was, for tests and benchmarks to score the pipeline against.
 
 Layout (contract.md): mesh.ply (the true stone, turntable frame, metres), cameras.json (per frame:
-file, 4x4 camera-to-world in OpenCV convention, K, width, height) and masks/<stem>.png (8-bit, 255 =
-stone). Frames are added one at a time by `write_truth_frame` so a scan that resumes after a crash
-adds its new frames without rewriting the ones it already has; every write is atomic.
+file, 4x4 camera-to-world in OpenCV convention, K, width, height), masks/<stem>.png (8-bit, 255 =
+stone) and images/<stem>.exr, the noise-free image the sensor was exposed to (`TruthImage`);
+images_<W>w/ holds it at a training width W, made on first use by `true_images_at`. Frames are added
+one at a time by `write_truth_frame` so a scan that resumes after a crash adds its new frames without
+rewriting the ones it already has; every write is atomic.
 """
 
 from __future__ import annotations
 
 import json
+import shutil
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+import cv2
 import numpy as np
+import OpenEXR
 from PIL import Image
 
-from sim.scene import World, render
+from sim.scene import RenderOut, World, render
+from sim.sensor import SensorModel
 from sim.stone import Stone
-from station.errors import ScanFolderError
+from station.errors import BadInputError, ScanFolderError
 from station.rig_geometry import RigGeometry, camera_to_turntable
 from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
 
@@ -32,6 +39,85 @@ def _truth_paths(scan_root: Path) -> tuple[Path, Path, Path]:
 def mask_path_for(scan_root: Path, file: str) -> Path:
     """Where the true mask of frame `file` lives: sim_truth/masks/<stem>.png."""
     return _truth_paths(scan_root)[2] / f"{Path(file).stem}.png"
+
+
+@dataclass
+class TruthImage:
+    """What the sensor was exposed to, before mosaic, noise and clipping: linear sRGB primaries, the lens's
+    vignetting included (the develop does not undo it), and the same split into the stone alone."""
+
+    exposed: np.ndarray  # [H, W, 3] float32: scene radiance times vignetting
+    stone: np.ndarray  # [H, W, 3] float32: the stone's share of `exposed`, premultiplied by its coverage
+    alpha: np.ndarray  # [H, W] float32: the stone's coverage
+
+    @classmethod
+    def of(cls, out: RenderOut, sensor: SensorModel) -> "TruthImage":
+        h, w = out.alpha.shape
+        vignetting = sensor.vignetting(h, w).astype(np.float32)[..., None]
+        return cls(exposed=out.radiance * vignetting, stone=out.stone * vignetting, alpha=out.alpha)
+
+    def downscaled(self, width: int) -> "TruthImage":
+        """Area-averaged to `width` pixels wide: exact, as a render is itself a box filter over its samples."""
+        h, w = self.alpha.shape
+        if width >= w:
+            return self
+        size = (width, max(1, round(h * width / w)))
+        area = [cv2.resize(x, size, interpolation=cv2.INTER_AREA) for x in (self.exposed, self.stone, self.alpha)]
+        return TruthImage(*area)
+
+
+def write_truth_image(path: Path, image: TruthImage) -> None:
+    """One half-float EXR: R, G, B the exposed image, A the coverage, stone.R/G/B the stone alone."""
+    channels = {"RGB": image.exposed, "A": image.alpha, **{f"stone.{c}": image.stone[..., i] for i, c in enumerate("RGB")}}
+    channels = {name: np.ascontiguousarray(x.astype(np.float16)) for name, x in channels.items()}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+
+    def writer(tmp: Path) -> None:
+        with OpenEXR.File(header, channels) as out:
+            out.write(str(tmp))
+
+    atomic_write_with(path, writer)
+
+
+def read_truth_image(path: Path) -> TruthImage:
+    try:
+        with OpenEXR.File(str(path)) as exr:
+            channels = exr.channels()
+            rgba, stone = (np.array(channels[name].pixels, dtype=np.float32) for name in ("RGBA", "stone"))
+        return TruthImage(exposed=rgba[..., :3], stone=stone, alpha=rgba[..., 3])
+    except (OSError, RuntimeError, KeyError, IndexError) as exc:
+        raise BadInputError(f"{path}: not a sim_truth image ({exc})") from exc
+
+
+def image_path_for(scan_root: Path, file: str, width: int | None = None) -> Path:
+    """sim_truth/images/<stem>.exr at the sensor's size, or images_<width>w/<stem>.exr at a training width."""
+    folder = "images" if width is None else f"images_{width}w"
+    return ScanFolder(scan_root).sim_truth_dir / folder / f"{Path(file).stem}.exr"
+
+
+def add_truth_image_file(scan_root: Path, file: str, staged: Path) -> None:
+    """Copy a truth image written at exposure (`SimRig` stages them) to sim_truth/images/."""
+    atomic_write_with(image_path_for(scan_root, file), lambda tmp: shutil.copyfile(staged, tmp))
+
+
+def true_images_at(scan_root: Path, width: int, files: Sequence[str]) -> dict[str, TruthImage]:
+    """The truth images of `files` at `width` pixels wide (a scan's training size), averaged down from the
+    sensor's and kept in sim_truth/images_<width>w/ beside it."""
+    out = {}
+    for file in files:
+        path = image_path_for(scan_root, file, width)
+        ScanFolder(scan_root).resolve_inside(file)
+        if path.is_file():
+            out[file] = read_truth_image(path)
+            continue
+        source = image_path_for(scan_root, file)
+        if not source.is_file():
+            raise ScanFolderError(f"{source}: no truth image for {file} (a scan simulated before they were kept?)")
+        full = read_truth_image(source)
+        out[file] = full.downscaled(width)
+        if out[file] is not full:
+            write_truth_image(path, out[file])
+    return out
 
 
 def true_masks_at(scan_root: Path, stone: Stone, width: int, files: Sequence[str]) -> dict[str, np.ndarray]:
@@ -84,11 +170,12 @@ def write_truth_frame(
     elevation_deg: float,
     azimuth_deg: float,
     mask: np.ndarray | None = None,
+    image: TruthImage | None = None,
 ) -> None:
-    """Add or replace one frame's camera and true mask; writes mesh.ply first if it is missing.
+    """Add or replace one frame's camera, true mask and truth image; writes mesh.ply first if it is missing.
 
-    `mask` [H, W] bool is the mask from the render that made the frame (saves a render); without it
-    the stone is rendered at this pose. Plates get an empty mask, as the stone was not there.
+    `mask` [H, W] bool and `image` are from the render that made the frame (saves a render); without a
+    mask the frame is rendered at this pose for both. Plates get an empty mask, as the stone was not there.
     """
     scan_root = Path(scan_root)
     ScanFolder(scan_root).resolve_inside(file)
@@ -96,7 +183,10 @@ def write_truth_frame(
     if not mesh_path.exists():
         write_truth_mesh(scan_root, world)
     if mask is None:
-        mask = render(world, elevation_deg, azimuth_deg, supersample=2).mask
+        out = render(world, elevation_deg, azimuth_deg, supersample=2)
+        mask, image = out.mask, TruthImage.of(out, SensorModel())
+    if image is not None:
+        write_truth_image(image_path_for(scan_root, file), image)
     if mask.shape != (world.rig.height, world.rig.width):
         raise ScanFolderError(f"{file}: mask is {mask.shape}, the rig makes {world.rig.height}x{world.rig.width}")
     png = Image.fromarray(np.where(mask, 255, 0).astype(np.uint8))
@@ -114,7 +204,9 @@ def write_sim_truth(scan_root: Path, world: World, frames: Sequence[Frame]) -> N
     mesh_path, cameras_path, _ = _truth_paths(scan_root)
     write_truth_mesh(scan_root, world)
     for file, elevation, azimuth in frames:
-        mask = render(world, elevation, azimuth, stone_present=True, supersample=2).mask
+        out = render(world, elevation, azimuth, stone_present=True, supersample=2)
+        mask = out.mask
+        write_truth_image(image_path_for(scan_root, file), TruthImage.of(out, SensorModel()))
         png = Image.fromarray(np.where(mask, 255, 0).astype(np.uint8))
         atomic_write_with(mask_path_for(scan_root, file), lambda tmp, png=png: png.save(tmp, format="PNG"))
     records = [_camera_record(world, file, elev, azim) for file, elev, azim in frames]

@@ -89,7 +89,8 @@ def run(
     workers: int = typer.Option(1, "--workers", min=1, help="Scans worked on at once."),
     threads: int = typer.Option(0, "--threads", min=0, help="CPU threads per stage; 0: the cores shared among the workers."),
     executor: str = typer.Option("local", "--executor", help="local (stage processes here) or ray."),
-    ray_address: Optional[str] = typer.Option(None, "--ray-address", help="An existing Ray cluster; default: start a local one."),
+    ray_address: Optional[str] = typer.Option(None, "--ray-address", help="An existing Ray cluster, HEAD:PORT (token auth: RAY_AUTH_MODE=token, "
+                                                  "see docs/batch-ray.md); default: start a local one."),
     forever: bool = typer.Option(False, "--forever", help="Keep waiting for new scans (--watch) instead of stopping when the queue is empty."),
     method: str = typer.Option("ngs", "--method", help="3dgs, alpha or ngs."),
     preset: str = typer.Option("fast", "--preset", help="Training preset (paper, fast, tiny)."),
@@ -120,9 +121,10 @@ def run(
                              threads=threads, poll_seconds=poll, budgets=budgets)
     store = _store(queue, config=StoreConfig(lease_seconds=lease, max_attempts=max_attempts, backoff_seconds=backoff))
     if executor == "ray":
-        from station.batch.ray_executor import RayExecutor
+        from station.batch.ray_executor import RayExecutor, ray_log_path
 
-        engine = RayExecutor(ray_address, num_cpus=None if ray_address else workers * settings.stage_threads())
+        engine = RayExecutor(ray_log_path(queue), ray_address,
+                             num_cpus=None if ray_address else workers * settings.stage_threads())
     else:
         from station.batch.executors import LocalExecutor
 

@@ -111,7 +111,7 @@ def test_the_morning_summary_html_is_self_contained_and_names_every_scan(queue, 
     summary = json.loads(result.stdout)
     assert summary["counts"] == {"pass": 1, "parked": 1, "queued": 1}
     page = page_path.read_text()
-    for name in ("a_pass", "b_parked", "c_waiting", "PASS", "12.5 s", "diverged, preset tiny"):
+    for name in ("a_pass", "b_parked", "c_waiting", "PASS", "12.5 s", "diverged: the training itself diverged, preset tiny"):
         assert name in page
     assert "&lt;NaN&gt;" in page and "<NaN>" not in page  # reasons are escaped, never markup
     assert "<script" not in page and "src=" not in page and "http" not in page
@@ -123,3 +123,28 @@ def test_running_an_empty_queue_writes_the_summary_and_exits_0(tmp_path):
     assert result.exit_code == 0
     assert Path(json.loads(result.stdout)["summary_html"]) == tmp_path / "q-summary.html"
     assert (tmp_path / "q-summary.html").is_file()
+
+
+def test_the_summary_tells_a_lost_node_from_a_failed_training_and_says_where_each_attempt_ran(tmp_path):
+    path = tmp_path / "queue.sqlite"
+    store = JobStore(path)
+    store.add(finished_capture(tmp_path / "stone"))
+    job = store.claim("w")
+    for stage, event, detail in (
+            ("process", "finished", {"seconds": 3.0, "node": "10.0.0.1/aaaa"}),
+            ("train", "failed", {"kind": "lost", "preset": "fast", "node": "10.0.0.2/bbbb", "message": "NodeDiedError"}),
+            ("train", "failed", {"kind": "diverged", "preset": "fast", "node": "10.0.0.3/cccc", "message": "NaN"}),
+            ("train", "finished", {"seconds": 9.0, "preset": "fast-safe", "node": "10.0.0.3/cccc"}),
+            ("export", "finished", {"seconds": 1.0, "node": "10.0.0.1/aaaa"})):
+        store.log_stage(job.id, stage, "k", event, detail)
+    store.finish(job.id, "w", "pass")
+
+    row = json.loads(invoke("summary", "--queue", path, "--json").stdout)["scans"][0]
+    assert row["nodes"] == {"process": ["10.0.0.1/aaaa finished"], "export": ["10.0.0.1/aaaa finished"],
+                            "train": ["10.0.0.2/bbbb lost", "10.0.0.3/cccc diverged", "10.0.0.3/cccc finished"]}
+    lost, diverged = row["failures"]
+    assert lost.startswith("train (lost: infrastructure") and "run again as it was" in lost and "on 10.0.0.2/bbbb" in lost
+    assert diverged.startswith("train (diverged: the training itself diverged, preset fast, on 10.0.0.3/cccc)")
+    printed = invoke("summary", "--queue", path).output
+    assert ("stone ran on: process on 10.0.0.1/aaaa; train on 10.0.0.2/bbbb (lost), then 10.0.0.3/cccc (diverged), "
+            "then 10.0.0.3/cccc; export on 10.0.0.1/aaaa") in printed

@@ -1,4 +1,4 @@
-"""The runner in-process: budgets, operator cancel, and the guards that keep one scan from stalling the night.
+"""The runner in-process: budgets, operator cancel, fencing, and the guards that keep one scan from stalling the night.
 
 Each test queues a copy of one tiny simulated scan and runs the real runner with the local
 executor; what each test checks happens early, so only the cancel test reaches training.
@@ -17,9 +17,9 @@ import pytest
 
 from batch_support import shoot
 from station.batch.executors import LocalExecutor
-from station.batch.runner import DEFAULT_BUDGETS, BatchSettings, StageBudget, run_batch
-from station.batch.stages import STAGES, scan_stage_key
-from station.batch.store import JobStore, StoreConfig
+from station.batch.runner import DEFAULT_BUDGETS, BatchSettings, StageBudget, run_batch, run_job
+from station.batch.stages import STAGES, read_record, scan_stage_key
+from station.batch.store import Job, JobStore, StoreConfig
 from station.ngs.presets import make_config, safer_preset
 from station.process.images_io import read_png16
 from station.scanfolder import ScanFolder
@@ -104,3 +104,51 @@ def test_the_training_width_reaches_the_process_stage_as_a_parameter_of_its_run(
     job = store.get(scan)
     started = [json.loads(e["detail"]) for e in store.stage_events(job.id) if (e["stage"], e["event"]) == ("process", "started")]
     assert started and all(detail["training_width"] == 80 for detail in started)  # the params its key is made from
+
+
+class Clock:
+    """The store's clock: real time, plus however far a test moves it on."""
+
+    def __init__(self) -> None:
+        self.offset = 0.0
+
+    def __call__(self) -> float:
+        return time.time() + self.offset
+
+
+class StallsAfterTheStage:
+    """The real local executor; then its runner stalls past the lease and runner B takes the job over.
+
+    The stall is the store's own clock moving past the lease, and B's claim goes through the
+    store's API: what a SIGSTOP between a stage's end and its DONE record does to runner A."""
+
+    def __init__(self, store: JobStore, clock: Clock):
+        self.store, self.clock, self.inner = store, clock, LocalExecutor()
+        self.taken_over: Job | None = None
+
+    def run(self, call, cancel, attempt, placed):
+        outcome = self.inner.run(call, cancel, attempt, placed)
+        self.clock.offset += self.store.config.lease_seconds + 1
+        self.taken_over = self.store.claim("runner-B")
+        return outcome
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def test_a_runner_that_lost_its_lease_during_a_stage_writes_no_done_record(shot, tmp_path):
+    scan = Path(shutil.copytree(shot, tmp_path / "stone"))
+    clock = Clock()
+    # a long lease: the heartbeat thread does not beat during the test, so only the fence check can stop A
+    store = JobStore(tmp_path / "queue.sqlite", StoreConfig(lease_seconds=60, backoff_seconds=0), clock=clock)
+    store.add(scan)
+    job = store.claim("runner-A")
+    executor = StallsAfterTheStage(store, clock)
+    run_job(store, job, "runner-A", executor, SETTINGS, threading.Event())
+    executor.close()
+
+    assert executor.taken_over is not None and executor.taken_over.fence == job.fence + 1
+    assert read_record(ScanFolder(scan), "process")["state"] == "started"  # no DONE record from runner A
+    log = [(e["stage"], e["event"], json.loads(e["detail"]).get("why")) for e in store.stage_events(job.id)]
+    assert log == [("process", "started", None), ("process", "abandoned", "lease lost")]
+    assert store.get(scan).lease_owner == "runner-B"  # A released nothing of B's

@@ -3,6 +3,7 @@
 import multiprocessing
 import os
 import signal
+import sqlite3
 import time
 
 import pytest
@@ -129,3 +130,28 @@ def test_a_worker_killed_holding_a_lease_loses_no_job(tmp_path):
     assert store.jobs()[0].lease_owner == "doomed"
     time.sleep(0.6)
     assert store.claim("survivor").scan == str((tmp_path / "scan_a").resolve())
+
+
+def test_each_claim_draws_a_new_fencing_token_and_a_stale_one_never_holds(store, tmp_path, clock):
+    job = store.add(tmp_path / "scan_a")
+    first = store.claim("w1")
+    assert store.holds(job.id, "w1", first.fence) and store.lease_left(job.id, "w1", first.fence) == 10
+    clock.now += 11  # w1 stalled past its lease: no longer holds it, even before anyone takes it over
+    assert not store.holds(job.id, "w1", first.fence)
+    second = store.claim("w2")
+    assert second.fence == first.fence + 1
+    assert not store.holds(job.id, "w1", first.fence) and store.lease_left(job.id, "w1", first.fence) is None
+    assert not store.heartbeat(job.id, "w1", fence=first.fence)
+    assert store.holds(job.id, "w2", second.fence) and not store.holds(job.id, "w2", first.fence)
+
+
+def test_a_queue_from_before_fencing_gains_the_column(tmp_path):
+    path = tmp_path / "queue.sqlite"
+    JobStore(path)
+    db = sqlite3.connect(path)
+    db.execute("ALTER TABLE jobs DROP COLUMN fence")
+    db.execute("INSERT INTO jobs(scan, added, updated) VALUES ('/scans/a', 0, 0)")
+    db.commit()
+    db.close()
+    store = JobStore(path)
+    assert store.claim("w1").fence == 1

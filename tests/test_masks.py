@@ -10,7 +10,7 @@ import pytest
 
 from station.errors import BadInputError
 from station.process.images_io import read_exr, read_mask_png, read_png16
-from station.process.masks import Matte, MaskSettings, check_masks, compute_mask, compute_matte, shadow_field
+from station.process.masks import Matte, MaskSettings, check_masks, compute_mask, compute_matte, shadow_field, unmix
 from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, sha256_bytes
 
 
@@ -174,6 +174,24 @@ def test_the_matte_gives_edge_pixels_their_coverage_and_the_stone_its_own_colour
     plate_pixels = matte.alpha == 0
     assert plate_pixels.sum() > 0.8 * (coverage == 0).sum()
     assert np.all(matte.foreground[plate_pixels] == shot[plate_pixels])  # left as shot
+
+
+def test_a_barely_covered_edge_pixel_takes_the_stones_colour_not_the_noise_divided_by_its_coverage() -> None:
+    # solved for the stone's colour alone, the mix divides the shot's noise by the coverage: colours neither
+    # stone nor plate has; with the solid stone beside it as a prior, the estimate stays the stone's
+    coverage = coverage_ellipse(s=16).astype(np.float32)
+    brown = np.array([0.30, 0.24, 0.17], dtype=np.float32)
+    plate = backdrop()
+    shot = with_noise(coverage[..., None] * brown + (1 - coverage[..., None]) * plate)
+    colour = unmix(shot, plate, coverage, MaskSettings())
+    thin, most = (coverage > 0) & (coverage < 0.15), (coverage > 0.85) & (coverage < 1)
+    assert thin.sum() > 50 and most.sum() > 50
+    assert np.abs(colour[thin] - brown).max() <= 0.03
+    assert np.abs(colour[most] - brown).max() <= 0.03
+    solid_or_absent = (coverage == 0) | (coverage == 1)
+    assert np.array_equal(colour[solid_or_absent], shot[solid_or_absent])
+    solved_alone = (shot - (1 - coverage[..., None]) * plate) / np.maximum(coverage, 1e-6)[..., None]
+    assert np.abs(solved_alone[thin] - brown).max() >= 0.3
 
 
 def test_a_matte_averaged_down_to_the_training_width_keeps_coverage_and_the_stones_own_colour() -> None:

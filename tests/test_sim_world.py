@@ -20,7 +20,9 @@ from sim.dng import read_dng
 from sim.scene import CHART_LINEAR_SRGB, World, camera_rays, frame_source, render
 from sim.sensor import SensorModel
 from sim.stone import BACKDROP_ALBEDO, LOOKS, load_stone_mesh, procedural_stone
-from sim.truth import mask_path_for, write_sim_truth, write_truth_frame
+from sim.truth import (
+    TruthImage, image_path_for, mask_path_for, read_truth_image, true_images_at, write_sim_truth, write_truth_frame,
+)
 from station.errors import BadInputError, ScanFolderError
 from station.rig_geometry import RigGeometry, camera_to_turntable
 
@@ -289,6 +291,26 @@ def test_sim_truth_holds_the_mesh_cameras_and_masks(world, tmp_path):
     png = np.array(Image.open(mask_path_for(tmp_path, "raw/e20_a090.dng")))
     assert png.dtype == np.uint8 and set(np.unique(png)) <= {0, 255}
     np.testing.assert_array_equal(png == 255, render(world, 20.0, 90.0).mask)
+
+
+def test_sim_truth_keeps_the_noise_free_exposed_image_also_at_a_training_width(world, tmp_path):
+    file = "raw/e20_a090.dng"
+    write_sim_truth(tmp_path, world, [(file, 20.0, 90.0)])
+    out = render(world, 20.0, 90.0, stone_present=True)
+    truth, expected = read_truth_image(image_path_for(tmp_path, file)), TruthImage.of(out, SensorModel())
+    np.testing.assert_allclose(truth.exposed, expected.exposed, rtol=2e-3, atol=1e-4)  # half floats
+    np.testing.assert_allclose(truth.stone, expected.stone, rtol=2e-3, atol=1e-4)
+    np.testing.assert_allclose(truth.alpha, out.alpha, atol=1e-3)
+    assert np.all(truth.stone[out.alpha == 0] == 0) and np.all(truth.exposed[out.alpha == 1] == truth.stone[out.alpha == 1])
+    corner = SensorModel().vignetting(*out.alpha.shape)[0, 0]
+    assert truth.exposed[0, 0, 1] == pytest.approx(out.radiance[0, 0, 1] * corner, rel=2e-3)  # the lens's falloff
+    w, h = world.rig.width // 2, world.rig.height // 2
+    half = true_images_at(tmp_path, w, [file])[file]
+    assert image_path_for(tmp_path, file, w).is_file()
+    # a render is a box filter, so averaging it down is rendering at the smaller size with the same samples
+    direct = render(World(world.stone, rig=world.rig.scaled(w, h)), 20.0, 90.0, stone_present=True, supersample=4)
+    np.testing.assert_allclose(half.alpha, direct.alpha, atol=2e-3)
+    np.testing.assert_allclose(half.stone, TruthImage.of(direct, SensorModel()).stone, atol=5e-3)
 
 
 def test_truth_frames_are_added_one_by_one_on_resume(world, tmp_path):

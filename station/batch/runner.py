@@ -5,13 +5,19 @@ the stage table. Per stage it computes the key (station.batch.stages); a stage w
 says done under the same key, with every output still verifying, is skipped; anything else is
 cleaned, checked against its disk budget, and run by the executor within its time budget.
 Order makes it crash-safe: outputs, then the stage's DONE record, then the store's `finished`
-line; a kill anywhere leaves either a verifiable finished stage or one that is redone.
+line; a kill anywhere leaves either a verifiable finished stage or one that is redone. The DONE
+record is written only after the fence check (the claim's token still holds the lease), so a
+runner that stalled past its lease and woke after another runner took the job writes nothing.
 
 What a failure leads to (also in the morning summary):
 - bad input (a malformed scan, no usable shot), a full disk, a stage over its time budget:
   parked at once with the reason; retrying cannot help until an operator acts.
 - training diverged (TrainingError), ran out of memory, or its process was killed (the
   kernel's OOM killer): retried once with the safer preset (`<preset>-safe`), then parked.
+- the machinery under the stage failed (Ray: a node died, a worker crashed, a task was lost
+  with its node): the stage runs again as it was, same preset and parameters, on another node
+  (at most MAX_LOST times, then the job backs off like any error). Nothing about the scan
+  changed, so nothing about its result may.
 - anything else: retried with capped, doubling backoff (the store's attempts), then parked.
 - frames the process stage flagged (a corrupt raw, a frame with no plausible mask): the scan
   goes on without them and the flags are the job's reason, beside the gate's verdict.
@@ -31,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from station.batch.executors import StageExecutor
+from station.batch.executors import Attempt, StageExecutor
 from station.batch.stage_run import Outcome, StageCall, classify
 from station.batch.stages import (
     STAGES,
@@ -54,6 +60,7 @@ log = logging.getLogger("station.batch")
 
 PARK_AT_ONCE = {"bad_input", "disk_full", "timeout"}
 SAFER_RETRY = {"diverged", "out_of_memory", "died"}  # for the train stage
+MAX_LOST = 3  # a stage lost with its node this often in one attempt: back off instead
 
 
 @dataclass(frozen=True)
@@ -114,9 +121,24 @@ class Lease:
         if not self._renew(name):
             self._lose()
 
+    def holds(self) -> bool:
+        """The fence check before a write for the job outside the store: this claim's token still holds
+        an unexpired lease. A store too busy to answer counts as not holding it."""
+        try:
+            held = self.store.holds(self.job.id, self.worker, self.job.fence)
+        except sqlite3.OperationalError:
+            held = False
+        if not held:
+            self._lose()
+        return held
+
+    def attempt(self, avoid: frozenset[str] = frozenset()) -> Attempt:
+        return Attempt(str(self.store.path), self.job.id, self.worker, self.job.fence,
+                       self.store.config.lease_seconds, avoid)
+
     def _renew(self, stage: str | None = None) -> bool:
         try:
-            return self.store.heartbeat(self.job.id, self.worker, stage)
+            return self.store.heartbeat(self.job.id, self.worker, stage, self.job.fence)
         except sqlite3.OperationalError:  # store busy: a missed beat; the lease's expiry is the arbiter
             return True
 
@@ -161,6 +183,12 @@ def _stage_params(settings: BatchSettings, stage: str, events: list[dict[str, An
     if stage == "process" and settings.training_width is not None:
         return {"training_width": settings.training_width}
     return {}
+
+
+def _lost_nodes(events: list[dict[str, Any]], stage: str) -> list[str]:
+    """The nodes this stage was lost on (node died, worker crashed) since the operator's last retry."""
+    return [e["detail"].get("node", "?") for e in events
+            if e["stage"] == stage and e["event"] == "failed" and e["detail"].get("kind") == "lost"]
 
 
 def _lost_starts(events: list[dict[str, Any]], stage: str, key: str) -> int:
@@ -228,9 +256,13 @@ class JobRun:
                 self.park(f"{spec.name}: started {self.settings.max_lost_starts} times without an outcome; "
                            "the runner keeps dying in this stage (out of memory?)")
                 return None
-            outcome = self._execute(spec, key, params, started)
+            outcome = self._execute(spec, key, params, started, frozenset(_lost_nodes(events, spec.name)))
             if outcome.ok:
                 return outcome.outputs, outcome.summary
+            if outcome.kind == "lost" and len(_lost_nodes(_events(self.store, self.job), spec.name)) < MAX_LOST:
+                log.warning("%s: %s lost with its node or worker (%s); running it again as it was, elsewhere",
+                            self.scan.root.name, spec.name, outcome.message)
+                continue
             preset = params.get("preset")
             if spec.name == "train" and outcome.kind in SAFER_RETRY and safer_preset(preset) != preset:
                 log.info("%s: training failed with preset %s (%s); retrying with %s", self.scan.root.name,
@@ -239,10 +271,11 @@ class JobRun:
             self._fail(spec, outcome)
             return None
 
-    def _execute(self, spec: StageSpec, key: str, params: dict[str, Any], started: float) -> Outcome:
+    def _execute(self, spec: StageSpec, key: str, params: dict[str, Any], started: float,
+                 avoid: frozenset[str]) -> Outcome:
         budget = self.settings.budgets[spec.name]
         self.lease.stage(spec.name)
-        if self.lease.cancel.is_set():  # cancelled or taken over: touch nothing in the folder
+        if self.lease.cancel.is_set() or not self.lease.holds():  # cancelled or taken over: touch nothing
             raise JobAbandoned("lease lost" if self.lease.lost else "runner stopping")
         resumed = resumable(self.scan, spec, key)
         if not resumed:
@@ -253,25 +286,37 @@ class JobRun:
             self.store.log_stage(self.job.id, spec.name, key, "failed", {"kind": "disk_full", "message": str(exc)})
             return Outcome("disk_full", str(exc))
         write_started(self.scan, spec.name, key)
-        self.store.log_stage(self.job.id, spec.name, key, "started",
-                             {"worker": self.worker, "resumed": resumed, **params})
+        where: dict[str, str] = {"worker": self.worker}
+
+        def placed(node: str) -> None:
+            where["node"] = node
+            self.store.log_stage(self.job.id, spec.name, key, "started", {
+                "worker": self.worker, "fence": self.job.fence, "node": node, "resumed": resumed, **params})
+
         call = StageCall(str(self.scan.root), spec.name, params, budget.seconds, self.settings.stage_threads())
-        outcome = self.executor.run(call, self.lease.cancel)
-        if outcome.kind == "cancelled" or self.lease.cancel.is_set():
-            why = "lease lost" if self.lease.lost else "runner stopping"
-            self.store.log_stage(self.job.id, spec.name, key, "abandoned", {"why": why})
+        outcome = self.executor.run(call, self.lease.cancel, self.lease.attempt(avoid), placed)
+        # the fence check: a runner that stalled past its lease records nothing, least of all a DONE record
+        if outcome.kind == "cancelled" or self.lease.cancel.is_set() or not self.lease.holds():
+            why = "lease lost" if self.lease.lost else ("runner stopping" if self.lease.stop.is_set() else outcome.message)
+            self.store.log_stage(self.job.id, spec.name, key, "abandoned", {"why": why, **where})
             raise JobAbandoned(why)
         if outcome.ok:
             write_done(self.scan, spec.name, key, outcome.outputs, outcome.summary)
             self.store.log_stage(self.job.id, spec.name, key, "finished", {
-                "seconds": round(outcome.seconds, 3), "wall": round(time.perf_counter() - started, 3), **params})
+                "seconds": round(outcome.seconds, 3), "wall": round(time.perf_counter() - started, 3), **where,
+                **params})
         else:
             self.store.log_stage(self.job.id, spec.name, key, "failed",
-                                 {"kind": outcome.kind, "message": outcome.message, **params})
+                                 {"kind": outcome.kind, "message": outcome.message, **where, **params})
         return outcome
 
     def _fail(self, spec: StageSpec, outcome: Outcome) -> None:
-        if spec.name == "train" and outcome.kind in SAFER_RETRY:
+        if outcome.kind == "lost":
+            nodes = ", ".join(_lost_nodes(_events(self.store, self.job), spec.name))
+            job = self.store.fail(self.job.id, self.worker, f"{spec.name}: lost with its node {MAX_LOST} times "
+                                  f"({nodes}); the cluster is failing, not the scan", retryable=True)
+            log.warning("%s: %s lost %d times, %s", self.scan.root.name, spec.name, MAX_LOST, job.state)
+        elif spec.name == "train" and outcome.kind in SAFER_RETRY:
             first, safer = self.settings.preset, safer_preset(self.settings.preset)
             tried = first if first == safer else f"{first} and again with {safer}"
             self.park(f"train failed with preset {tried}: {outcome.message}")

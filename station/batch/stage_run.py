@@ -29,6 +29,7 @@ OutcomeKind = Literal[
     "timeout",  # over the stage's time budget
     "died",  # the stage process vanished (killed by the OS, a crash in native code)
     "cancelled",  # the runner stopped it (lease lost, shutdown)
+    "lost",  # the node or worker under it failed (Ray): run it again as it was, elsewhere
     "error",  # anything else: may be transient
 ]
 

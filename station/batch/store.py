@@ -1,7 +1,10 @@
 """The overnight job store: one SQLite file (WAL) that is the single source of truth.
 
 One job per scan. A worker claims a job with a lease it must renew by heartbeat; a lease that
-expires (the worker was killed, the machine lost power) puts the job back in the queue. Failed
+expires (the worker was killed, the machine lost power) puts the job back in the queue. Each
+claim draws the job's next fencing token: a worker checks its token (`holds`) before writing a
+stage's done record, so a runner that stalled past its lease (SIGSTOP, a frozen VM) and woke up
+after another took the job over writes nothing. Failed
 attempts back off and are capped; a job out of attempts is parked (quarantined) with the reason.
 Every state change is one short transaction, so a SIGKILL at any moment leaves the store
 consistent: SQLite's WAL journal makes each commit atomic and durable.
@@ -31,6 +34,7 @@ CREATE TABLE IF NOT EXISTS jobs (
     not_before REAL NOT NULL DEFAULT 0,
     lease_owner TEXT,
     lease_expires REAL,
+    fence INTEGER NOT NULL DEFAULT 0,
     verdict TEXT,
     reason TEXT,
     added REAL NOT NULL,
@@ -70,6 +74,7 @@ class Job:
     verdict: str | None
     reason: str | None
     lease_owner: str | None
+    fence: int = 0  # the fencing token of the current (or last) claim; each claim draws the next
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -91,6 +96,8 @@ class JobStore:
                 raise BadInputError(f"{self.path}: not a usable job store ({exc})") from exc
             if check != "ok":
                 raise BadInputError(f"{self.path}: job store is damaged ({check})")
+            if "fence" not in {row["name"] for row in db.execute("PRAGMA table_info(jobs)")}:
+                db.execute("ALTER TABLE jobs ADD COLUMN fence INTEGER NOT NULL DEFAULT 0")  # a queue from before fencing
 
     def _connect(self) -> sqlite3.Connection:
         try:
@@ -127,19 +134,41 @@ class JobStore:
             if row is None:
                 return None
             db.execute(
-                "UPDATE jobs SET state='running', lease_owner=?, lease_expires=?, updated=? WHERE id=?",
+                "UPDATE jobs SET state='running', lease_owner=?, lease_expires=?, fence=fence+1, updated=? WHERE id=?",
                 (worker, now + self.config.lease_seconds, now, row["id"]),
             )
         return self.get_by_id(row["id"])
 
-    def heartbeat(self, job_id: int, worker: str, stage: str | None = None) -> bool:
-        """Renew the lease; False means the lease was lost (expired and taken) and work must stop."""
+    def holds(self, job_id: int, worker: str, fence: int) -> bool:
+        """The fence check: True, and the lease renewed, only while `worker` holds the claim that drew `fence`
+        and its lease has not run out. Called before anything is written for the job outside the store."""
+        now = self.clock()
+        with self._transaction() as db:
+            cursor = db.execute(
+                "UPDATE jobs SET lease_expires=?, updated=? "
+                "WHERE id=? AND lease_owner=? AND fence=? AND state='running' AND lease_expires >= ?",
+                (now + self.config.lease_seconds, now, job_id, worker, fence, now),
+            )
+            return cursor.rowcount == 1
+
+    def lease_left(self, job_id: int, worker: str, fence: int) -> float | None:
+        """Seconds left on the claim that drew `fence` (read only, for a stage process watching its runner's
+        lease); None when that claim is gone (taken over, cancelled, finished)."""
+        with closing(self._connect()) as db:
+            row = db.execute("SELECT lease_owner, fence, state, lease_expires FROM jobs WHERE id=?", (job_id,)).fetchone()
+        if row is None or (row["lease_owner"], row["fence"], row["state"]) != (worker, fence, "running"):
+            return None
+        return row["lease_expires"] - self.clock()
+
+    def heartbeat(self, job_id: int, worker: str, stage: str | None = None, fence: int | None = None) -> bool:
+        """Renew the lease (of the claim that drew `fence`, when given); False means the lease was lost
+        (expired and taken, or cancelled) and work must stop."""
         now = self.clock()
         with self._transaction() as db:
             cursor = db.execute(
                 "UPDATE jobs SET lease_expires=?, stage=COALESCE(?, stage), updated=? "
-                "WHERE id=? AND lease_owner=? AND state='running'",
-                (now + self.config.lease_seconds, stage, now, job_id, worker),
+                "WHERE id=? AND lease_owner=? AND state='running' AND fence=COALESCE(?, fence)",
+                (now + self.config.lease_seconds, stage, now, job_id, worker, fence),
             )
             return cursor.rowcount == 1
 
@@ -297,4 +326,5 @@ def _job(row: sqlite3.Row) -> Job:
         verdict=row["verdict"],
         reason=row["reason"],
         lease_owner=row["lease_owner"],
+        fence=row["fence"],
     )

@@ -1,4 +1,5 @@
-"""The morning summary: per scan, its verdict, how long each stage took and what went wrong.
+"""The morning summary: per scan, its verdict, how long each stage took, where each attempt ran, and what
+went wrong and of which kind (the machinery under a stage, or the stage itself).
 
 Built from the job store alone (jobs and the stage log), so it can be printed or written at any
 time, even while a batch still runs. The HTML file is self-contained (inline CSS, no scripts,
@@ -21,6 +22,17 @@ from station.batch.stages import STAGE_NAMES
 from station.batch.store import JobStore
 from station.scanfolder import atomic_write_text
 
+# What a failure says about the scan, for the reader of the summary
+FAILURE_KIND = {
+    "lost": "infrastructure: the node or worker under the stage failed; run again as it was",
+    "diverged": "the training itself diverged",
+    "out_of_memory": "the stage itself ran out of memory",
+    "died": "the stage process was killed (out of memory?)",
+    "bad_input": "bad input",
+    "disk_full": "disk full",
+    "timeout": "over its time budget",
+}
+
 
 @dataclass
 class ScanRow:
@@ -32,7 +44,8 @@ class ScanRow:
     attempts: int
     stage_seconds: dict[str, float] = field(default_factory=dict)  # last finished run of each stage
     skipped: list[str] = field(default_factory=list)  # stages found finished and verified
-    failures: list[str] = field(default_factory=list)  # "train (diverged, preset tiny): ..."
+    failures: list[str] = field(default_factory=list)  # "train (diverged: ..., preset tiny, on NODE): ..."
+    nodes: dict[str, list[str]] = field(default_factory=dict)  # per stage, each attempt: "NODE finished|lost|..."
     wall_seconds: float | None = None  # first stage start to the last event
 
     @property
@@ -65,14 +78,20 @@ def build_summary(store: JobStore) -> Summary:
         events = store.stage_events(job.id)
         for event in events:
             detail = json.loads(event["detail"] or "{}")
+            if event["event"] in ("finished", "failed", "abandoned") and detail.get("node"):
+                ended = detail.get("kind") if event["event"] == "failed" else event["event"]
+                row.nodes.setdefault(event["stage"], []).append(f"{detail['node']} {ended}")
             if event["event"] == "finished":
                 row.stage_seconds[event["stage"]] = detail.get("seconds", 0.0)
             elif event["event"] == "skipped" and event["stage"] not in row.skipped:
                 row.skipped.append(event["stage"])
             elif event["event"] == "failed":
+                kind = str(detail.get("kind"))
+                what = f"{kind}: {FAILURE_KIND[kind]}" if kind in FAILURE_KIND else kind
                 preset = f", preset {detail['preset']}" if detail.get("preset") else ""
+                node = f", on {detail['node']}" if detail.get("node") else ""
                 message = str(detail.get("message")).replace(f"{job.scan}/", "")  # the row names the scan
-                row.failures.append(f"{event['stage']} ({detail.get('kind')}{preset}): {message}")
+                row.failures.append(f"{event['stage']} ({what}{preset}{node}): {message}")
         starts = [e["at"] for e in events if e["event"] == "started"]
         if starts:
             row.wall_seconds = round(events[-1]["at"] - min(starts), 1)
@@ -96,9 +115,23 @@ def print_summary(summary: Summary, console: Console) -> None:
         cells = (row.name, _verdict(row), row.stage or "-", *times, wall, str(len(row.failures)))
         table.add_row(*(Text(cell) for cell in cells))  # Text: a "[...]" in a name is not markup
     console.print(table)
+    used = {entry.rsplit(" ", 1)[0] for row in summary.rows for entries in row.nodes.values() for entry in entries}
     for row in summary.rows:
-        if row.reason:
-            console.print(f"{row.name}: {row.reason}", highlight=False, markup=False)
+        lines = [f"{row.name}: {row.reason}"] if row.reason else []
+        lines += [f"{row.name}: {failure}" for failure in row.failures]
+        if row.nodes and (len(used) > 1 or row.failures):  # one machine: where is no news
+            lines.append(f"{row.name} ran on: {where(row)}")
+        for line in lines:  # one line each, however long: grep and copy work on it
+            console.print(line, highlight=False, markup=False, soft_wrap=True)
+
+
+def where(row: ScanRow) -> str:
+    """Each stage's attempts and their nodes, in stage order: "train on A (lost), then B; export on B"."""
+    def attempts(stage: str) -> str:
+        parts = [entry.rsplit(" ", 1) for entry in row.nodes[stage]]
+        return ", then ".join(node if ended == "finished" else f"{node} ({ended})" for node, ended in parts)
+
+    return "; ".join(f"{stage} on {attempts(stage)}" for stage in STAGE_NAMES if stage in row.nodes)
 
 
 _CSS = """
@@ -115,7 +148,8 @@ ul { margin: 0; padding-left: 1.2em; } small { color: #666; }
 def summary_html(summary: Summary) -> str:
     e = html.escape
     counts = ", ".join(f"{n} {e(k)}" for k, n in summary.counts().items()) or "no scans"
-    head = "".join(f"<th>{e(c)}</th>" for c in ("scan", "verdict", "stage", *STAGE_NAMES, "wall", "reason", "failures"))
+    head = "".join(f"<th>{e(c)}</th>" for c in ("scan", "verdict", "stage", *STAGE_NAMES, "wall", "reason", "failures",
+                                                "ran on"))
     body = []
     for row in summary.rows:
         verdict = _verdict(row)
@@ -129,6 +163,7 @@ def summary_html(summary: Summary) -> str:
         cells.append(f"<td>{e(row.reason or '')}</td>")
         failures = "".join(f"<li>{e(f)}</li>" for f in row.failures)
         cells.append(f"<td>{f'<ul>{failures}</ul>' if failures else ''}</td>")
+        cells.append(f"<td><small>{e(where(row))}</small></td>")
         body.append("<tr>" + "".join(cells) + "</tr>")
     return (
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"

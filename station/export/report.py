@@ -40,7 +40,7 @@ class HeldOutPanel:
 @dataclass
 class Panels:
     held_out: list[HeldOutPanel] = field(default_factory=list)
-    strip: list[tuple[str, np.ndarray, np.ndarray]] = field(default_factory=list)  # (name, photo, render)
+    strip: list[tuple[str, np.ndarray, np.ndarray]] = field(default_factory=list)  # (name, training target, render)
 
 
 @dataclass
@@ -98,7 +98,7 @@ def render_panels(surface: Gaussians, infill: Infill, scene: SceneData, n_held_o
     for i in np.linspace(0, len(views) - 1, min(n_strip, len(views))).astype(int):
         view = views[int(i)]
         box = crop_box(view)
-        panels.strip.append((view.name, view.image.numpy()[box], _render(g, view, surface.sh_degree)[box]))
+        panels.strip.append((view.name, view.target.numpy()[box], _render(g, view, surface.sh_degree)[box]))
     return panels
 
 
@@ -223,7 +223,8 @@ def _figure(image: np.ndarray, caption: str) -> str:
 
 def _images(panels: Panels, metrics: dict) -> str:
     per_view = {row.get("view"): row for row in metrics.get("views", [])}
-    parts = ["<h2>Turntable strip: photos (top) and renders (bottom)</h2>",
+    parts = ["<h2>Turntable strip: the views as training saw them (top) and renders (bottom)</h2>",
+             "<p>Each view is the stone alone on black, its colour times its coverage: what the model was fitted to.</p>",
              '<div class="row">' + "".join(_figure(p, name) for name, p, _ in panels.strip) + "</div>",
              '<div class="row">' + "".join(_figure(r, "render") for _, _, r in panels.strip) + "</div>",
              "<h2>Held-out views: where the inside leaks</h2>",

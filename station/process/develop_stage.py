@@ -5,8 +5,8 @@ every frame to a common exposure, optionally corrects colour against a chart see
 and writes images/<stem>.png (16-bit sRGB), images_linear/<stem>.exr (half linear, the shot as
 developed; plates too, so the masks can be cut again after posing) and masks/<stem>.png for every
 shot. The mask holds the stone's coverage (255 inside, fractions on its edge), and images/ hold the
-stone's own colour on those edge pixels, unmixed from the plate (masks.Matte): an image times its
-mask is the stone alone on black, the form training matches. The matte is cut at the developed
+stone's own colour on those edge pixels, unmixed from the plate with the stone beside them as a prior
+(masks.unmix): an image times its mask is the stone alone on black, the form training matches. The matte is cut at the developed
 resolution and, when `ProcessSettings.training_width` is narrower, area-averaged down to it for
 images/ and masks/ (images_linear/ stays as developed): a camera finer than the training images
 gives masks finer than one training pixel. Frames that cannot be used are not fatal: each frame's
@@ -66,6 +66,7 @@ class DevelopReport:
     chart_delta_e00: tuple[float, float] | None  # (before, after) mean ΔE00 on the chart, if used
     plates: dict[float, str]  # elevation -> stem of the developed plate in images_linear/
     seconds: float
+    matte_seconds: float = 0.0  # of `seconds`, the share spent cutting and unmixing the mattes
 
     @property
     def usable_shots(self) -> list[FrameReport]:
@@ -192,6 +193,7 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         write_exr_half(scan.images_linear_dir / f"{plate_stems[elevation]}.exr", plate_linear[elevation])
 
     rings: dict[float, list[tuple[float, str, np.ndarray]]] = {}
+    matte_seconds = 0.0
     for entry in (e for e in readable if e.kind == "shot"):
         frame = develop(entry)
         if frame is None:
@@ -202,7 +204,9 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
             report.flags.append(f"no_plate: none at {entry.elevation_deg} deg, masked against {plate_elev} deg")
         linear = frame.linear if correction is None else np.clip(frame.linear @ correction.T, 0.0, None)
         stem = Path(entry.file).stem
+        started = time.perf_counter()
         matte = training_matte(linear, plate_linear[plate_elev], settings)
+        matte_seconds += time.perf_counter() - started
         mask = matte.mask
         write_training_view(scan, stem, matte)
         write_exr_half(scan.images_linear_dir / f"{stem}.exr", linear)
@@ -218,4 +222,5 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         chart_delta_e00=chart_de,
         plates=plate_stems,
         seconds=time.perf_counter() - start,
+        matte_seconds=matte_seconds,
     )

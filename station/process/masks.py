@@ -11,17 +11,11 @@ labelling with a per-pixel background model rather than a guess from colours alo
 2. Graph cut (min-cut over 8-neighbour pixels, scipy's max-flow), iterated with its models:
    - background: the plate times a smooth contact-shadow field, fitted as a local plane to
      the current background in log space so it extrapolates up to the stone's edge. Its scale
-     follows the stone's size in pixels, as the contact shadow's does: a low camera squeezes
-     the shadow into a few rows under the stone, and a plane over a fixed, wider window lags
-     its steep deepening there, so the darker rows read as stone (4-5 rows of shadow in the
-     masks of a 320x240 scan's lowest ring). A
-     global "darker and grey" shadow class, as GrabCut's colour model or a shadow threshold
-     amounts to, also swallows the shaded, grazing rim of a textured stone (it cost the
-     speckled stone 2-3% IoU); a field fitted around the stone does not. Only when the stone's
-     own colour sets it apart from the plate (few plate-coloured pixels in it) does the fit also
-     take plate-coloured, shadowed pixels next to it: under a rounded base seen from the lowest
-     ring the shadow halves the plate within two rows, far steeper than the plane, and that wedge
-     went into the masks (200-350 pixels a view on a real stone mesh, +4 % mesh volume);
+     follows the stone's size in pixels, as the contact shadow's does (a low camera squeezes the
+     shadow into a few rows, which a wider plane lags). A field fitted around the stone, unlike a
+     global "darker and grey" shadow class, leaves a textured stone's shaded rim alone. Only when
+     the stone's own colour sets it apart from the plate does the fit also take plate-coloured,
+     shadowed pixels next to it, the steep wedge under a rounded base that the plane misses;
    - stone: a smoothed colour histogram (log RGB) of the current stone pixels;
    - a small bonus inside the seed hull (nearly convex stones);
    - a contrast-sensitive smoothness term on the noise-normalised difference between the shot
@@ -31,7 +25,8 @@ labelling with a per-pixel background model rather than a guess from colours alo
    colour beside it, and is stone if the stone covers at least half of it.
 4. Cleaning: largest connected component, holes filled.
 5. The matte (`compute_matte`): the coverage of the edge pixels and the stone's own colour there,
-   which is what training should match (see `Matte`).
+   which is what training should match (see `Matte`), estimated with the colour of the solid stone
+   nearby as a prior (`unmix`), so a barely covered pixel never takes a colour neither has.
 Known limit of one view: a pale stone's shaded side that is smooth, grey and darker than the plate
 is explained by the shadow field as well as by the stone, and is lost. On the simulated stones it
 fades into its own contact shadow with no edge at all (low elevations); where an edge does
@@ -78,25 +73,21 @@ class MaskSettings:
     max_plate_coloured_stone: float = 0.1  # a stone with fewer plate-coloured pixels than this is told by colour
     matte_boundary: bool = True  # relabel the boundary pixels by their coverage (see matte_boundary)
     max_alpha_sigma: float = 0.15  # boundary pixels whose coverage is less certain keep the cut's label
+    edge_colour_px: float = 1.5  # Gaussian scale of the solid stone whose colour an edge pixel's colour leans on
+    edge_colour_floor: float = 0.02  # relative spread the stone's colour keeps beyond what its pixels show
     colour_bins: int = 24  # per log-RGB axis of the stone colour histogram
     colour_floor: float = 1e-3  # density any colour keeps under the stone model (unseen grains, highlights)
     hull_prior_nats: float = 3.0  # bonus for stone inside the seed hull
-    # The stone's silhouette as the other rings predict it (cross_view.py): stone inside it is worth these nats,
-    # short of a band on its edge, where the prediction is itself a pixel out and the shot alone decides. The
-    # silhouette also joins the seed, worth `hull_prior_nats` more. Where the silhouette may be a roof over the
-    # stone (cross_view.roofed_part: its edge faces up more steeply than the other rings see edge-on), stone is
-    # worth only `roof_prior_nats`: under a roof over a flat-topped pale stone lies backdrop as pale as the stone,
-    # and a strong prior took it in. Lowest rings cut again from their first cut (640x480 averaged to 320, all 40
-    # views), pale seeds 5 and 7: one prior of 2 nats 0.981, 0.979; 5 nats 0.966, 0.981; 4 nats with 1 on the
-    # roof 0.985, 0.981; 5 with 0 on the roof and the roof out of the seed, 0.984, 0.973 (pale 7's top needs it).
+    # The stone's silhouette as the other rings predict it (cross_view.py) is worth these nats of stone, short of
+    # a band on its edge where the prediction is itself a pixel out; on its part that may be a roof over the stone
+    # (cross_view.roofed_part) only `roof_prior_nats`, as backdrop as pale as a pale stone may lie under it.
     silhouette_prior_nats: float = 4.0
     roof_prior_nats: float = 1.0
     silhouette_band_px: int = 1
     smoothness: float = 9.0  # nats per unit boundary length across a flat (edgeless) region
     contrast_blur_px: float = 1.0  # the smoothness term reads edges on a lightly denoised difference
-    # Larger frames are masked at this longest side and the mask is resized back: the cut's graph
-    # grows with the pixel count (6.75 MP took 25 s and 2 GB), its accuracy with the stone's size
-    # in pixels, which is ample here.
+    # Larger frames are masked at this longest side and the mask is resized back: the cut's cost grows
+    # with the pixel count, its accuracy only with the stone's size in pixels, which is ample here.
     max_working_side: int = 1280
     # The frame's long side the pixel-sized settings above were tuned at (the simulated rig's 320x240).
     # On larger frames the two that follow the stone's size in pixels scale with it (see `for_frame`).
@@ -108,10 +99,8 @@ class MaskSettings:
         The seed's closing bridges gaps of a size on the stone, and smoothness weighs a pixel of
         boundary against a pixel of area, whose counts grow linearly and quadratically with the
         resolution: both scale with it, so a cut on a finer camera makes the same decisions about
-        regions. Left unscaled, a 640x480 cut lost more of a pale stone's shaded side (ring above
-        the lowest: IoU 0.962 against 0.984 scaled, averaged down to 320x240). The settings that
-        follow the pixel itself (mixed edge pixels, noise blur) do not scale: widening the shadow
-        field's gap too let a speckled stone's contact shadow in (lowest ring 0.988 -> 0.979).
+        regions. The settings that follow the pixel itself (mixed edge pixels, noise blur, the
+        shadow field's gap) do not scale.
         """
         factor = long_side / self.tuned_side
         # the result is tuned for `long_side` itself, so applying it twice scales once
@@ -413,8 +402,7 @@ def refine_graph_cut(
         return seed.astype(np.float32), plate
     border = _border(shot.shape[:2], settings.border_fraction)
     # The plate is not blurred against the sharp shot: the backdrop is smooth, but a colour chart
-    # beside the stone is not, and a blurred plate made every chart edge look like stone (the chart
-    # joined the mask, IoU 0.78, wherever a big stone touched it). Its noise is in `sigma`.
+    # beside the stone is not, and a blurred plate makes every chart edge look like stone. Its noise is in `sigma`.
     log_shot = np.log(np.maximum(shot, _LOG_FLOOR))  # [H, W, 3]
     log_ratio = log_shot - np.log(np.maximum(plate, _LOG_FLOOR))
     sigma, centre = _noise_sigma(log_ratio, plate, border)
@@ -482,12 +470,11 @@ class Matte:
 
     Training renders the stone alone on black, so what it should match at an edge pixel is the
     stone's colour times its coverage, alpha F, not the shot, which also holds (1 - alpha) of the
-    plate there: with 0/1 masks the plate's share of the edge pixels made 86 % of a real stone
-    mesh's held-out error at 256x192, and no model consistent across views can fit it.
+    plate there, a share no model consistent across views can fit.
     """
 
     alpha: np.ndarray  # [H, W] float32 in [0, 1]: the stone's coverage, fractional only on the mask's edge
-    foreground: np.ndarray  # [H, W, 3] float32 linear: the stone's colour, unmixed from the background where 0 < alpha < 1, else the shot
+    foreground: np.ndarray  # [H, W, 3] float32 linear: the stone's colour (`unmix`) where 0 < alpha < 1, else the shot
 
     @property
     def mask(self) -> np.ndarray:
@@ -500,7 +487,8 @@ class Matte:
         Cut at the camera's resolution and averaged down, the coverage of a training pixel is the share of
         its sub-pixels the stone covers: a stone's one-pixel rim of doubtful coverage shrinks with the pixel,
         where a cut at the training resolution itself has no finer evidence to go on. The colour averaged is
-        the stone's alone (premultiplied by coverage), so an edge pixel's colour stays unmixed from the plate.
+        the stone's alone (premultiplied by coverage), so an edge pixel's colour stays a mix of the stone's
+        colours under it, unmixed from the plate.
         """
         h, w = self.alpha.shape
         if width >= w:
@@ -571,10 +559,58 @@ def compute_matte(
         coverage, background = (cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR)
                                 for image in (coverage, background))
     alpha = _one_stone(coverage)
+    return Matte(alpha=alpha, foreground=unmix(full_shot, background, alpha, settings))
+
+
+def nearby_stone_colour(shot: np.ndarray, solid: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and variance [H, W, 3] of the `solid` stone pixels near each pixel (Gaussian weights of scale
+    `sigma_px`), and the weight [H, W] they had."""
+    radius = int(np.ceil(3 * sigma_px))
+    offsets = np.arange(-radius, radius + 1, dtype=np.float32)
+    kernel = np.exp(-0.5 * (offsets[:, None] ** 2 + offsets[None, :] ** 2) / sigma_px**2)
+
+    def smooth(image: np.ndarray) -> np.ndarray:
+        return cv2.filter2D(image, -1, kernel, borderType=cv2.BORDER_CONSTANT)
+
+    inside = solid.astype(np.float32)
+    weight = smooth(inside)
+    norm = np.maximum(weight, 1e-6)[..., None]
+    mean = smooth(shot * inside[..., None]) / norm
+    variance = np.maximum(smooth(shot**2 * inside[..., None]) / norm - mean**2, 0.0)
+    return mean, variance, weight
+
+
+def unmix(shot: np.ndarray, background: np.ndarray, alpha: np.ndarray, settings: MaskSettings) -> np.ndarray:
+    """The stone's own colour [H, W, 3]: the shot where the stone covers the pixel or is absent, and on its
+    partly covered edge the most probable colour given the mix C = a F + (1 - a) B and the stone beside it.
+
+    Solving the mix for F alone divides the shot's noise and the background model's error by a, which at small
+    coverage makes colours neither stone nor plate has. Here F also has a prior, the colour of the solid stone
+    pixels nearby (mean and spread, per channel), so the less of a pixel the stone covers the more its colour
+    is the stone's nearby one (the maximum a posteriori estimate of Bayesian matting with the coverage known).
+    """
+    colour = shot.astype(np.float32)
     partial = (alpha > 0.0) & (alpha < 1.0)
-    unmixed = (full_shot - (1.0 - alpha[..., None]) * background) / np.maximum(alpha, 1e-6)[..., None]
-    foreground = np.where(partial[..., None], np.maximum(unmixed, 0.0), full_shot).astype(np.float32)
-    return Matte(alpha=alpha, foreground=foreground)
+    if not partial.any():
+        return colour
+    solid = alpha >= 1.0
+    fallback = shot[solid if solid.any() else partial].mean(axis=0)  # a stone with no solid pixel near
+    border = _border(shot.shape[:2], settings.border_fraction)
+    log_ratio = np.log(np.maximum(shot, _LOG_FLOOR)) - np.log(np.maximum(background, _LOG_FLOOR))
+    sigma, _ = _noise_sigma(log_ratio, np.maximum(background, _LOG_FLOOR), border)
+    ys, xs = np.nonzero(partial)
+    pad = int(np.ceil(3 * settings.edge_colour_px)) + 1
+    box = (slice(max(0, ys.min() - pad), ys.max() + pad + 1), slice(max(0, xs.min() - pad), xs.max() + pad + 1))
+    c, b, a = shot[box], background[box], alpha[box][..., None]
+    prior, spread, weight = nearby_stone_colour(c, solid[box], settings.edge_colour_px)
+    known = (weight > 1e-3)[..., None]
+    prior = np.where(known, prior, fallback)
+    prior_var = np.where(known, spread, 0.0) + (settings.edge_colour_floor * np.maximum(prior, _LOG_FLOOR)) ** 2
+    mix_var = (sigma[box] ** 2 + settings.shadow_slack**2) * np.maximum(b, _LOG_FLOOR) ** 2
+    residual = c - (1.0 - a) * b  # a F plus noise
+    estimate = (a * residual / mix_var + prior / prior_var) / (a * a / mix_var + 1.0 / prior_var)
+    colour[box] = np.where(partial[box][..., None], np.maximum(estimate, 0.0), c)
+    return colour
 
 
 def compute_mask(
