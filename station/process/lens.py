@@ -185,7 +185,8 @@ def check_unfolded(lens: Lens, where: str) -> None:
     top = g[: turns[0] + 1].max() if len(turns) else g.max()
     if top < reach:
         radius = top * i.fx
-        raise BadInputError(f"{where}: {lens.model} distortion {lens.named()} folds the image: the radial map "
+        terms = {k: v for k, v in lens.named().items() if v}
+        raise BadInputError(f"{where}: {lens.model} distortion {terms} folds the image: the radial map "
                             f"turns back {max(radius, 0):.0f} px from the principal point, inside the image "
                             f"(its corners are {reach * i.fx:.0f} px away); undistortion is undefined there")
 
