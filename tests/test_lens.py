@@ -105,6 +105,8 @@ def test_a_calibrated_lens_joins_the_rig_model_and_survives_its_json(tmp_path):
     back = RigModel.load(tmp_path / "rig.json")
     assert back.lens() == lens and RigModel.load(tmp_path / "rig.json").lens().scaled(640, 480).coefficients == lens.coefficients
     assert nominal.lens().model == "PINHOLE" and not nominal.lens().distorted
+    with pytest.raises(BadInputError, match="lens's intrinsics differ"):
+        RigModel(nominal.intrinsics, nominal.elevation_poses, distortion=lens.scaled(640, 480))
 
 
 def test_the_colmap_export_round_trips_through_pycolmap_with_undistorted_tracks(tmp_path):

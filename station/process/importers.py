@@ -12,6 +12,8 @@ Conventions read:
 - COLMAP model (cameras/images/points3D, .bin or .txt): world-to-camera, OpenCV axes.
 - IDR/NeuS (DTU): `cameras.npz` with `world_mat_i` = K [R|t] (P, world-to-image, DTU world in mm)
   and `scale_mat_i` (unit sphere -> world); images in `image/`, masks in `mask/`.
+Distorted cameras (nerfstudio OPENCV/OPENCV_FISHEYE, COLMAP's radial and OpenCV models) are undistorted
+on import, masks alike (`lens.py`), and the pinhole that results is what transforms.json holds.
 """
 
 from __future__ import annotations

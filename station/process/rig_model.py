@@ -92,6 +92,10 @@ class RigModel:
     residuals: dict[str, float] = field(default_factory=dict)
     distortion: Lens | None = None  # the lens self-calibration found (at `intrinsics`); None: pinhole, unrefined
 
+    def __post_init__(self) -> None:
+        if self.distortion is not None and self.distortion.intrinsics != self.intrinsics:
+            raise BadInputError(f"rig model ({self.kind}): the lens's intrinsics differ from the model's")
+
     def lens(self) -> Lens:
         """The camera posing starts from: the calibrated lens, else the nominal pinhole."""
         return self.distortion if self.distortion is not None else Lens(self.intrinsics)
