@@ -1,5 +1,9 @@
 """The scan-folder contract: atomic writes, the manifest, and refusal of escaping paths."""
 
+import stat
+import subprocess
+import sys
+
 import pytest
 
 from station.errors import ScanFolderError
@@ -71,3 +75,13 @@ def test_a_staged_view_writes_only_into_its_fresh_folder_until_the_commit(tmp_pa
     scan.commit(staged, "train")
     assert (scan.model_dir / "surface.pt").read_bytes() == b"new"
     assert sorted(p.name for p in scan.root.iterdir()) == ["model", "stages"]
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o027, 0o640), (0o002, 0o664)])
+def test_written_files_honour_the_process_umask(tmp_path, umask, mode):
+    script = (f"import os; os.umask({umask:#o}); from pathlib import Path; "
+              "from station.scanfolder import atomic_write_bytes, atomic_write_with; "
+              f"atomic_write_bytes(Path({str(tmp_path / 'a.json')!r}), b'{{}}'); "
+              f"atomic_write_with(Path({str(tmp_path / 'b.png')!r}), lambda p: p.write_bytes(b'x'))")
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=120)
+    assert [stat.S_IMODE((tmp_path / name).stat().st_mode) for name in ("a.json", "b.png")] == [mode, mode]

@@ -111,7 +111,7 @@ def test_a_started_scan_shows_progress_the_rig_pose_and_a_preview_until_it_finis
 def test_pause_holds_the_rig_between_frames_until_resume(client, tmp_path):
     start(client)
     wait_for(client, frames_done(2))
-    assert client.post("/api/scan/pause").status_code == 200
+    assert client.post("/api/scan/pause", json={}).status_code == 200
     paused = wait_for(client, phase("paused"))
     assert paused["rig"]["turntable"]["state"] == "holding still at the pose (paused)"
     time.sleep(0.5)
@@ -119,16 +119,16 @@ def test_pause_holds_the_rig_between_frames_until_resume(client, tmp_path):
     assert still["phase"] == "paused" and still["done"] == paused["scan"]["done"] < still["total"]
     assert manifest_count(tmp_path, "stone-1") == still["done"], "every frame counted is on disk, no more"
 
-    assert client.post("/api/scan/resume").status_code == 200
+    assert client.post("/api/scan/resume", json={}).status_code == 200
     assert wait_for(client, phase("finished"))["scan"]["done"] == still["total"]
 
 
 def test_cancel_stops_at_a_frame_boundary_and_starting_the_same_scan_again_resumes_it(client, tmp_path):
     request = start(client)["scan"]["request"]
     wait_for(client, frames_done(2))
-    client.post("/api/scan/pause")
+    client.post("/api/scan/pause", json={})
     wait_for(client, phase("paused"))
-    assert client.post("/api/scan/cancel").status_code == 200
+    assert client.post("/api/scan/cancel", json={}).status_code == 200
     cancelled = wait_for(client, phase("cancelled"))["scan"]
     assert cancelled["resumable"] is True and "kept" in cancelled["message"]
     assert cancelled["done"] == manifest_count(tmp_path, "stone-1") < cancelled["total"]
@@ -141,13 +141,13 @@ def test_cancel_stops_at_a_frame_boundary_and_starting_the_same_scan_again_resum
 
 def test_buttons_that_do_not_fit_the_rig_state_are_refused_as_conflicts(client):
     for button in ("pause", "resume", "cancel"):
-        refused = client.post(f"/api/scan/{button}")
+        refused = client.post(f"/api/scan/{button}", json={})
         assert refused.status_code == 409 and "no scan is running" in refused.json()["error"]
     start(client)
     second = client.post("/api/scan/start", json={"name": "stone-2", "elevations": 1, "azimuths": 1})
     assert second.status_code == 409 and "stone-1 is still running" in second.json()["error"]
-    assert client.post("/api/scan/resume").status_code == 409, "resume only what is paused"
-    assert client.post("/api/operator/done").status_code == 409, "the simulated operator never asks"
+    assert client.post("/api/scan/resume", json={}).status_code == 409, "resume only what is paused"
+    assert client.post("/api/operator/done", json={}).status_code == 409, "the simulated operator never asks"
 
 
 @pytest.mark.parametrize("body, status, why", [
@@ -228,6 +228,13 @@ def test_a_button_pressed_from_another_origin_is_refused(client):
     refused = client.post("/api/scan/start", json={"name": "s", "elevations": 1, "azimuths": 1},
                           headers={"Origin": "http://evil.example"})
     assert refused.status_code == 403 and "another origin" in refused.json()["detail"]
+    assert client.get("/api/state").json()["scan"] is None
+
+
+def test_a_button_pressed_by_a_cross_site_form_without_origin_is_refused(client):
+    form = client.post("/api/scan/start", content="name=s&elevations=1&azimuths=1",
+                       headers={"Content-Type": "application/x-www-form-urlencoded"})
+    assert form.status_code == 403 and "JSON body" in form.json()["detail"]
     assert client.get("/api/state").json()["scan"] is None
 
 
@@ -339,6 +346,6 @@ def test_on_a_hardware_rig_the_operator_is_asked_on_the_page_and_the_scan_waits_
                 assert asking["scan"]["phase"] == "waiting for operator"
                 time.sleep(0.2)
                 assert client.get("/api/state").json()["operator_prompt"] == asking["operator_prompt"], "it waits"
-                assert client.post("/api/operator/done").status_code == 200
+                assert client.post("/api/operator/done", json={}).status_code == 200
             finished = wait_for(client, phase("finished"))["scan"]
     assert finished["done"] == finished["total"] == 4

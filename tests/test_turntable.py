@@ -286,10 +286,8 @@ def test_port_that_never_comes_back_fails_recovery_with_a_disconnect():
         fake.firmware.faults.replug_after_s = None
         with pytest.raises(DeviceDisconnectedError):
             table.move_to(200.0, 30.0).wait(5.0)
-        started = time.monotonic()
         with pytest.raises(DeviceDisconnectedError, match="did not come back"):
             table.recover()
-        assert time.monotonic() - started < FAST.reconnect_timeout_s + 2.0
 
 
 def test_connect_repeats_the_reset_when_a_booting_board_ignored_the_first():

@@ -284,7 +284,7 @@ class ScanSession:
             "stone_id": self.stone_id,
             "plan": self.plan.to_dict(),
             "rig": self.rig.to_dict(),
-            "camera": {"exposure_s": self.plan.exposure_s, "iso": self.plan.iso, "cfa": "RGGB"},
+            "camera": {"exposure_s": self.plan.exposure_s, "iso": self.plan.iso},
             "software": {"station": __version__},
         }
         if self.scan.scan_json.exists():

@@ -177,11 +177,21 @@ def _guard(config: ServeConfig):
             offered = _offered_token(request)
             if offered is None or not hmac.compare_digest(offered.encode("utf-8"), config.token.encode("utf-8")):
                 raise HTTPException(401, "token missing or wrong: open the dashboard as http://HOST:PORT/#token=...")
-        origin = request.headers.get("origin")
-        if request.method != "GET" and origin is not None and origin != f"{request.url.scheme}://{request.url.netloc}":
-            raise HTTPException(403, f"refused a request from another origin ({origin})")
+        if request.method != "GET":
+            _refuse_cross_site(request)
 
     return guard
+
+
+def _refuse_cross_site(request: Request) -> None:
+    """A button press must come from this page: a foreign Origin is refused, and without an Origin only a
+    JSON body is taken, which a cross-site form cannot send and a cross-site script cannot without a
+    CORS preflight this server never grants."""
+    origin = request.headers.get("origin")
+    if origin is not None and origin != f"{request.url.scheme}://{request.url.netloc}":
+        raise HTTPException(403, f"refused a request from another origin ({origin})")
+    if origin is None and not request.headers.get("content-type", "").startswith("application/json"):
+        raise HTTPException(403, "refused a request with neither this page's Origin nor a JSON body")
 
 
 def _offered_token(request: Request) -> str | None:
