@@ -168,7 +168,8 @@ def calibrate(
 ) -> None:
     """Fit the rig model (turntable axis, camera pose per ring) to a free SfM run of one scan.
 
-    The intrinsics stay those of the [rig] section the scan recorded: the SfM run holds them fixed.
+    The SfM run starts from the [rig] section's intrinsics and self-calibrates the lens (focal, principal
+    point, k1, k2, p1, p2); the model keeps it, so later scans start from, and undistort with, this lens.
     """
     from station.config import load_config
     from station.process.develop_stage import develop_scan
@@ -187,7 +188,8 @@ def calibrate(
         develop_scan(scan)
     model, report = calibrate_from_scan(scan, PoseSettings(), nominal)
     model.save(target)
-    result = {"rig_model": str(target), "views": len(report.registered), "residuals": model.residuals}
+    result = {"rig_model": str(target), "views": len(report.registered), "residuals": model.residuals,
+              "lens": report.lens}
     emit(result, as_json, lambda r: err_console.print(
         f"rig model written to {r['rig_model']} from {r['views']} views: " +
         ", ".join(f"{k} {v:.4g}" for k, v in r["residuals"].items())))

@@ -9,6 +9,7 @@ import numpy as np
 import pycolmap
 import pytest
 from PIL import Image
+from scipy import ndimage
 
 from station.errors import BadInputError
 from station.process.importers import ImportSettings, import_dataset
@@ -160,11 +161,136 @@ def test_colmap_import_turns_the_camera_ring_upright_by_default(tmp_path):
     assert rotation_angle_deg(rot, np.eye(3)) < 90.0 and abs(rot[2, 2] - 1.0) < 1e-9  # only a turn about z
 
 
-def test_colmap_distorted_camera_is_refused_with_advice(tmp_path):
-    cams, _ = colmap_world_cameras()
-    write_colmap(tmp_path / "src", cams, params=[F, F, W / 2, H / 2, 0.1, 0.0, 0.0, 0.0])
-    with pytest.raises(BadInputError, match="undistort"):
+DOTS = np.array([(x, y) for x in np.linspace(-0.4, 0.4, 7) for y in np.linspace(-0.28, 0.28, 5)])  # normalised
+DOT_RADIUS = 0.02
+
+
+def dots_image(camera: pycolmap.Camera, supersample: int = 3) -> np.ndarray:
+    """Coverage [H, W] (0..255) of round dots at DOTS on a plane at z = 1, seen through `camera`'s lens.
+
+    COLMAP's own model (cam_from_img) distorts here, an implementation independent of the OpenCV
+    one the importer undistorts with; pixel centres sit at +0.5 as in COLMAP and nerfstudio.
+    """
+    s = supersample
+    u, v = np.meshgrid((np.arange(W * s) + 0.5) / s, (np.arange(H * s) + 0.5) / s)
+    ray = camera.cam_from_img(np.column_stack([u.ravel(), v.ravel()]))  # [N, 2] normalised
+    d = np.min(np.linalg.norm(ray[:, None, :] - DOTS[None], axis=-1), axis=1)
+    inside = (d < DOT_RADIUS).reshape(H * s, W * s).astype(np.float64)
+    return np.rint(255 * inside.reshape(H, s, W, s).mean(axis=(1, 3))).astype(np.uint8)
+
+
+def dot_errors_px(coverage: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """Distance of each imaged dot's centroid from where a pinhole (fx, fy, cx, cy) puts its centre."""
+    labels, count = ndimage.label(coverage > 0)
+    centroids = np.array(ndimage.center_of_mass(coverage.astype(np.float64), labels, range(1, count + 1)))[:, ::-1] + 0.5
+    expected = np.column_stack([fx * DOTS[:, 0] + cx, fy * DOTS[:, 1] + cy])
+    seen = (expected[:, 0] > 4) & (expected[:, 0] < W - 4) & (expected[:, 1] > 4) & (expected[:, 1] < H - 4)
+    assert count >= seen.sum() > 10
+    return np.array([np.min(np.linalg.norm(centroids - e, axis=1)) for e in expected[seen]])
+
+
+def distorted_dataset(src: Path, camera: pycolmap.Camera, fmt: str, nerfstudio: dict | None = None) -> None:
+    """Three views of the dot plane through a distorted camera, as nerfstudio (RGBA, alpha = dots) or COLMAP."""
+    cover = dots_image(camera)
+    cams = ring_cameras(count=3)
+    if fmt == "colmap":
+        rec = pycolmap.Reconstruction()
+        rec.add_camera_with_trivial_rig(camera)
+        (src / "images").mkdir(parents=True)
+        for i, c2w in enumerate(cams):
+            Image.fromarray(np.repeat(cover[..., None], 3, axis=2)).save(src / "images" / f"img{i}.png")
+            image = pycolmap.Image(name=f"img{i}.png", camera_id=camera.camera_id, image_id=i + 1)
+            rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(np.linalg.inv(c2w)[:3, :4]))
+        (src / "sparse" / "0").mkdir(parents=True)
+        rec.write_binary(str(src / "sparse" / "0"))
+        return
+    (src / "train").mkdir(parents=True)
+    rgba = np.dstack([np.full((H, W, 3), 120, np.uint8), cover])
+    frames = []
+    for i, c2w in enumerate(cams):
+        Image.fromarray(rgba).save(src / "train" / f"r_{i}.png")
+        frames.append({"file_path": f"train/r_{i}.png", "transform_matrix": opencv_to_opengl(c2w).tolist()})
+    k = camera.calibration_matrix()
+    data = dict(fl_x=k[0, 0], fl_y=k[1, 1], cx=k[0, 2], cy=k[1, 2], w=W, h=H, frames=frames, **(nerfstudio or {}))
+    (src / "transforms.json").write_text(json.dumps(data))
+
+
+def _camera(model: str, params: list[float]) -> pycolmap.Camera:
+    return pycolmap.Camera(model=model, width=W, height=H, params=params, camera_id=1)
+
+
+COLMAP_LENSES = {
+    "SIMPLE_RADIAL": [F, W / 2, H / 2, -0.25],
+    "RADIAL": [F, W / 2 + 3, H / 2 - 2, -0.22, 0.05],
+    "OPENCV": [F, F * 1.01, W / 2, H / 2, -0.2, 0.04, 0.004, -0.003],
+    "FULL_OPENCV": [F, F, W / 2, H / 2, -0.2, 0.03, 0.002, 0.002, 0.01, 0.05, 0.0, 0.0],
+    "OPENCV_FISHEYE": [F, F, W / 2, H / 2, 0.08, -0.02, 0.01, 0.0],
+}
+
+
+@pytest.mark.parametrize("model", sorted(COLMAP_LENSES))
+def test_colmap_distorted_cameras_are_undistorted_to_a_pinhole_on_import(tmp_path, model):
+    camera = _camera(model, COLMAP_LENSES[model])
+    distorted_dataset(tmp_path / "src", camera, "colmap")
+    report = import_dataset(tmp_path / "src", "colmap", tmp_path / "scan", ImportSettings(orient="keep"))
+    assert any("undistorted" in f for f in report.flags)
+    scan = ScanFolder(tmp_path / "scan")
+    t = read_transforms(scan)
+    raw = json.loads(scan.transforms_path.read_text())
+    assert raw["k1"] == raw["k2"] == raw["p1"] == raw["p2"] == 0.0
+    image = np.asarray(Image.open(scan.resolve_inside(t.frames[0].file_path)).convert("L"))
+    errors = dot_errors_px(image, t.intrinsics.fx, t.intrinsics.fy, t.intrinsics.cx, t.intrinsics.cy)
+    assert errors.max() < 0.35, errors  # each dot lands where the written pinhole puts it
+    back = pycolmap.Reconstruction(str(scan.poses_dir / "colmap"))  # the COLMAP model beside it agrees
+    i = t.intrinsics
+    assert back.cameras[1].model.name == "PINHOLE" and back.num_reg_images() == 3
+    np.testing.assert_allclose(back.cameras[1].params, [i.fx, i.fy, i.cx, i.cy])
+
+
+@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
+def test_nerfstudio_distorted_cameras_and_their_alpha_masks_are_undistorted_alike(tmp_path, model):
+    if model == "OPENCV":
+        camera, extra = _camera("OPENCV", [F, F, W / 2, H / 2, -0.22, 0.04, 0.003, -0.002]), \
+            {"camera_model": "OPENCV", "k1": -0.22, "k2": 0.04, "p1": 0.003, "p2": -0.002}
+    else:
+        camera, extra = _camera("OPENCV_FISHEYE", [F, F, W / 2, H / 2, 0.1, -0.03, 0.01, 0.002]), \
+            {"camera_model": "OPENCV_FISHEYE", "k1": 0.1, "k2": -0.03, "k3": 0.01, "k4": 0.002}
+    distorted_dataset(tmp_path / "src", camera, "nerfstudio", extra)
+    report = import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan", QUICK)
+    assert report.masks == "alpha"
+    scan = ScanFolder(tmp_path / "scan")
+    t = read_transforms(scan)
+    i = t.intrinsics
+    mask = np.asarray(Image.open(scan.resolve_inside(t.frames[1].mask_path)))
+    assert dot_errors_px(mask, i.fx, i.fy, i.cx, i.cy).max() < 0.35
+    assert 0 < (mask[(mask > 0) & (mask < 255)]).size  # coverage stays coverage at the dot edges
+
+
+def test_a_distortion_that_folds_the_image_is_refused(tmp_path):
+    distorted_dataset(tmp_path / "src", _camera("RADIAL", [F, W / 2, H / 2, -0.6, 0.0]), "colmap")
+    with pytest.raises(BadInputError, match=r"sparse/0: OPENCV distortion .*folds the image"):
         import_dataset(tmp_path / "src", "colmap", tmp_path / "scan")
+    assert not (tmp_path / "scan" / "poses").exists()
+
+
+def test_a_camera_model_we_cannot_handle_is_refused_naming_file_and_model(tmp_path):
+    distorted_dataset(tmp_path / "a", _camera("FOV", [F, F, W / 2, H / 2, 0.5]), "colmap")
+    with pytest.raises(BadInputError, match=r"sparse/0: camera model FOV is not supported"):
+        import_dataset(tmp_path / "a", "colmap", tmp_path / "scan_a")
+    distorted_dataset(tmp_path / "b", _camera("PINHOLE", [F, F, W / 2, H / 2]), "nerfstudio",
+                      {"camera_model": "EQUIRECTANGULAR"})
+    with pytest.raises(BadInputError, match=r"transforms.json: camera_model 'EQUIRECTANGULAR' is not supported"):
+        import_dataset(tmp_path / "b", "nerfstudio", tmp_path / "scan_b")
+
+
+def test_a_mask_whose_size_differs_from_its_image_is_refused(tmp_path):
+    write_nerfstudio(tmp_path / "src", ring_cameras(count=3))
+    Image.fromarray(np.zeros((H // 2, W // 2), np.uint8)).save(tmp_path / "src" / "small.png")
+    data = json.loads((tmp_path / "src" / "transforms.json").read_text())
+    data["frames"][2]["mask_path"] = "small.png"
+    (tmp_path / "src" / "transforms.json").write_text(json.dumps(data))
+    with pytest.raises(BadInputError, match=r"small.png: mask size \(80, 60\) differs from its image's \(160, 120\)"):
+        import_dataset(tmp_path / "src", "nerfstudio", tmp_path / "scan", QUICK)
 
 
 def write_idr(src: Path, cams_mm: list[np.ndarray]) -> None:

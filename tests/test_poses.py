@@ -6,7 +6,9 @@ import json
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pycolmap
 import pytest
 import trimesh
 from PIL import Image
@@ -15,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from station.errors import BadInputError
 from station.process import poses
+from station.process.lens import Lens, lens_from_colmap, pinhole_for
 from station.process.poses import PoseSettings, PosingError, calibrate_from_scan, pose_scan
 from station.process.rig_model import (
     PosedView, RigModel, apply_similarity, axis_rotation, calibrate_rig, rotation_angle_deg, umeyama,
@@ -159,7 +162,65 @@ def test_transforms_json_holds_the_rig_poses_in_opengl_axes_and_metres(speckled)
         truth = camera_to_turntable(e, a, RIG)
         assert rotation_angle_deg(frame.c2w[:3, :3], truth[:3, :3]) < 0.1
         assert np.linalg.norm(frame.c2w[:3, 3] - truth[:3, 3]) < 0.002 * RIG.orbit_radius_m
-    assert (scan.poses_dir / "colmap" / "points3D.bin").is_file()
+    back = pycolmap.Reconstruction(str(scan.poses_dir / "colmap"))  # the COLMAP export reads back, tracks and all
+    assert back.cameras[1].model.name == "PINHOLE" and back.num_reg_images() == 23
+    assert back.num_points3D() == speckled[2].points and back.compute_mean_track_length() >= 2.0
+    for image in back.images.values():
+        frame = next(f for f in transforms.frames if f.file_path == f"images/{image.name}")
+        np.testing.assert_allclose(poses.sfm.c2w_of(image), frame.c2w, atol=1e-9)
+    assert set(speckled[2].reprojection_by_ring_px) == {"15", "40"}
+    assert all(0.0 < e < 1.0 for e in speckled[2].reprojection_by_ring_px.values())
+
+
+LENS_K = (-0.1, 0.01, 0.0005, -0.0004, 0.0, 0.0, 0.0, 0.0)  # a kit zoom at its wide end
+
+
+def distort_scan(pinhole: ScanFolder, root: Path, lens: Lens) -> ScanFolder:
+    """The speckled scan as a distorting lens would have shot it: every image and mask warped by `lens`.
+
+    COLMAP's model (cam_from_img) warps here, independent of the OpenCV maps that undistort."""
+    shutil.copytree(pinhole.root, root, ignore=shutil.ignore_patterns("poses"))
+    scan = ScanFolder(root)
+    i = lens.intrinsics
+    u, v = np.meshgrid(np.arange(i.width) + 0.5, np.arange(i.height) + 0.5)
+    ray = lens.to_colmap().cam_from_img(np.column_stack([u.ravel(), v.ravel()]))
+    map_x = (i.fx * ray[:, 0] + i.cx - 0.5).reshape(u.shape).astype(np.float32)
+    map_y = (i.fy * ray[:, 1] + i.cy - 0.5).reshape(u.shape).astype(np.float32)
+    for folder, flag in ((scan.images_dir, cv2.INTER_LINEAR), (scan.masks_dir, cv2.INTER_NEAREST)):
+        for path in folder.glob("*.png"):
+            data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            cv2.imwrite(str(path), cv2.remap(data, map_x, map_y, flag, borderMode=cv2.BORDER_REPLICATE))
+    return scan
+
+
+@pytest.mark.slow
+def test_a_calibrated_lens_is_undistorted_once_and_the_points_land_on_the_surface(speckled, tmp_path):
+    nominal = RigModel.nominal(RIG, list(ELEVATIONS))
+    lens = Lens(nominal.intrinsics, "OPENCV", LENS_K)  # at the rig's size; the scan is shot at twice that
+    scan = distort_scan(speckled[0], tmp_path / "distorted", lens.scaled(640, 480))
+    calibrated = RigModel(nominal.intrinsics, nominal.elevation_poses, kind="calibrated", distortion=lens)
+    report = pose_scan(scan, PoseSettings(cross_check=False), calibrated)
+    assert report.lens["undistorted"] and report.lens["max_shift_px"] > 2.0
+    assert report.lens["k1"] == pytest.approx(-0.1, abs=0.01)
+    transforms = read_transforms(scan)
+    assert transforms.intrinsics == pinhole_for(lens_from_colmap(
+        pycolmap.Camera(model="OPENCV", width=640, height=480, params=[report.lens["intrinsics"][k] for k in
+                        ("fx", "fy", "cx", "cy")] + [report.lens[k] for k in ("k1", "k2", "p1", "p2")]), "test"))
+    dist = surface_distance(speckled[1], read_ply_xyz(scan.poses_dir / "points3d.ply"))
+    assert report.init_cloud == "sfm" and np.median(dist) < 0.0005 and np.percentile(dist, 90) < 0.002
+    assert all(e < 1.0 for e in report.reprojection_by_ring_px.values())
+    # undistorted once: the images on disk now match the pinhole render, seen through the written camera
+    original = cv2.imread(str(speckled[0].images_dir / "e1_a004.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    now = cv2.imread(str(scan.images_dir / "e1_a004.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    t, k = transforms.intrinsics, nominal.intrinsics.scaled(640, 480)
+    u, v = np.meshgrid(np.arange(t.width) + 0.5, np.arange(t.height) + 0.5)
+    map_x = ((u - t.cx) / t.fx * k.fx + k.cx - 0.5).astype(np.float32)
+    map_y = ((v - t.cy) / t.fy * k.fy + k.cy - 0.5).astype(np.float32)
+    expected = cv2.remap(original, map_x, map_y, cv2.INTER_LINEAR)
+    stone = cv2.remap(cv2.imread(str(speckled[0].masks_dir / "e1_a004.png"), cv2.IMREAD_GRAYSCALE), map_x, map_y,
+                      cv2.INTER_NEAREST) > 0
+    # within a tenth of what a 2 px shift makes
+    assert np.abs(now - expected)[stone].mean() < 0.1 * np.abs(expected - np.roll(expected, 2, axis=1))[stone].mean()
 
 
 @pytest.mark.slow
@@ -201,6 +262,10 @@ def test_calibrating_the_rig_from_a_free_sfm_run_of_a_scan_recovers_the_true_rig
     # median, 0.05-0.09 % centre; the targets for poses are 0.1 deg and 0.2 %.
     assert np.median(rot) < 0.15 and max(rot) < 0.25
     assert max(ctr) < 0.002
+    # the lens the free run ends with joins the model (the simulated camera is a pinhole: nothing to undistort)
+    assert model.distortion is not None and model.intrinsics == model.lens().intrinsics
+    assert model.intrinsics.width == 640 and model.intrinsics.fx == pytest.approx(2 * RIG.focal_px, rel=0.01)
+    assert RigModel.from_dict(model.to_dict()).lens() == model.lens() and not report.lens["undistorted"]
 
 
 @pytest.mark.slow

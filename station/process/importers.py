@@ -12,6 +12,8 @@ Conventions read:
 - COLMAP model (cameras/images/points3D, .bin or .txt): world-to-camera, OpenCV axes.
 - IDR/NeuS (DTU): `cameras.npz` with `world_mat_i` = K [R|t] (P, world-to-image, DTU world in mm)
   and `scale_mat_i` (unit sphere -> world); images in `image/`, masks in `mask/`.
+Distorted cameras (nerfstudio OPENCV/OPENCV_FISHEYE, COLMAP's radial and OpenCV models) are undistorted
+on import, masks alike (`lens.py`), and the pinhole that results is what transforms.json holds.
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ from station.formats.images import DEFAULT_LIMITS, ImageLimits, checked_size, op
 from station.formats.jsonfile import read_json_object
 from station.formats.transforms import (CameraFields, NerfTransforms, PinholeCamera, check_camera, check_rotation,
                                         parse_transforms, pinhole)
+from station.process.colmap_export import colmap_model, write_colmap_model
+from station.process.lens import Lens, lens_from_colmap, lens_from_nerfstudio, split_nerfstudio_lens, undistortion
 from station.process.poses import write_point_ply
 from station.process.rig_model import apply_similarity
 from station.process.sfm import Intrinsics
@@ -67,6 +71,7 @@ class SourceDataset:
     intrinsics: Intrinsics
     frames: list[SourceFrame]
     points: tuple[np.ndarray, np.ndarray] | None = None  # xyz [N, 3] source units, rgb [N, 3] uint8
+    lens: Lens | None = None  # the source camera's distortion, undistorted on import; None: pinhole
 
 
 @dataclass
@@ -134,7 +139,8 @@ def read_nerfstudio(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDa
     path = next((src / n for n in ("transforms.json", "transforms_train.json") if (src / n).is_file()), None)
     if path is None:
         raise BadInputError(f"{src}: no transforms.json or transforms_train.json")
-    doc = parse_transforms(read_json_object(_inside(root, path.name, path, None)), path)
+    lens_fields, data = split_nerfstudio_lens(read_json_object(_inside(root, path.name, path, None)), path)
+    doc = parse_transforms(data, path)
     frames = []
     for i, raw in enumerate(doc.frames):
         image = _find_image(root, raw.file_path, path, f"frames[{i}].file_path")
@@ -144,7 +150,8 @@ def read_nerfstudio(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDa
             if not mask.is_file():
                 raise FormatError(path, f"frames[{i}].mask_path", f"{mask} not found")
         frames.append(SourceFrame(image, mask, opengl_to_opencv(raw.c2w_gl)))
-    return SourceDataset(_nerfstudio_camera(doc, frames[0].image, limits), frames)
+    intr = _nerfstudio_camera(doc, frames[0].image, limits)
+    return SourceDataset(intr, frames, lens=lens_from_nerfstudio(lens_fields, intr, str(path)))
 
 
 def _colmap_dirs(root: ScanFolder) -> tuple[Path, Path]:
@@ -175,15 +182,11 @@ def read_colmap(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDatase
     if rec.num_cameras() != 1:
         raise BadInputError(f"{model_dir}: {rec.num_cameras()} cameras; one shared camera is supported")
     camera = next(iter(rec.cameras.values()))
-    extra = [p for i, p in enumerate(camera.params) if i not in (*camera.focal_length_idxs(),
-                                                                 *camera.principal_point_idxs())]
-    if any(abs(p) > 1e-9 for p in extra):
-        raise BadInputError(f"{model_dir}: camera model {camera.model.name} has distortion {extra}: "
-                            "undistort first (colmap image_undistorter)")
     k = camera.calibration_matrix()
     cam = PinholeCamera(int(camera.width), int(camera.height), float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
     check_camera(cam, f"{model_dir}: camera {camera.camera_id}")
-    intr = Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
+    lens = lens_from_colmap(camera, str(model_dir))
+    intr = lens.intrinsics
     frames = []
     for image in sorted(rec.images.values(), key=lambda im: im.name):
         if not image.has_pose:
@@ -200,7 +203,7 @@ def read_colmap(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDatase
     if rec.num_points3D():
         pts = list(rec.points3D.values())
         points = (np.array([p.xyz for p in pts]), np.array([p.color for p in pts], dtype=np.uint8))
-    return SourceDataset(intr, frames, points)
+    return SourceDataset(intr, frames, points, lens)
 
 
 def _rigid_inverse(w2c: np.ndarray, source: object, field: str) -> np.ndarray:
@@ -295,6 +298,8 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
 
     scan = ScanFolder(out)
     flags: list[str] = []
+    undistort = undistortion(data.lens) if data.lens is not None else None
+    intrinsics = undistort.target if undistort is not None else data.intrinsics
     frames, masks, images, mask_kind = [], [], [], "none"
     for i, frame in enumerate(data.frames):
         name = f"{i:04d}_{frame.image.stem}.png"
@@ -316,6 +321,9 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
         elif rgba is not None:
             coverage = np.asarray(rgba)[:, :, 3]
             mask_kind = "alpha"
+        if undistort is not None:
+            rgb = undistort.image(rgb)
+            coverage = None if coverage is None else undistort.mask(coverage)
         atomic_write_with(scan.images_dir / name, lambda tmp, a=rgb: Image.fromarray(a).save(tmp, format="PNG"))
         if coverage is not None:
             atomic_write_with(scan.masks_dir / name, lambda tmp, m=coverage: Image.fromarray(m).save(tmp, format="PNG"))
@@ -330,7 +338,7 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
         xyz = units * (data.points[0] - origin) @ rot.T
         rgb_pts, init = data.points[1], "source"
     elif masks:
-        xyz, rgb_pts = carve([f.c2w for f in frames], masks, images, data.intrinsics, settings.hull_resolution)
+        xyz, rgb_pts = carve([f.c2w for f in frames], masks, images, intrinsics, settings.hull_resolution)
         init = "visual_hull"
     else:
         xyz, rgb_pts = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
@@ -338,9 +346,12 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
     if len(xyz):
         atomic_write_with(scan.poses_dir / "points3d.ply", lambda tmp: write_point_ply(tmp, xyz, rgb_pts))
         ply, count = "poses/points3d.ply", len(xyz)
-    write_transforms(scan, Transforms(data.intrinsics, frames, ply))
+    write_transforms(scan, Transforms(intrinsics, frames, ply))
+    write_colmap_model(scan, colmap_model(Transforms(intrinsics, frames, ply), (xyz, rgb_pts)))
     if not scan.scan_json.exists():
         atomic_write_json(scan.scan_json, {"stone_id": src.name, "imported": {"format": fmt, "source": str(src)}})
+    if undistort is not None:
+        flags.append(f"{data.lens.model} lens {data.lens.named()} undistorted on import to a pinhole camera")
     if orient == "ring":
         flags.append("axes from the camera ring: origin is where the cameras look, not the plate surface")
     report = ImportReport(fmt, len(frames), mask_kind, units, orient, init, count, flags,

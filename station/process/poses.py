@@ -15,18 +15,22 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from station.errors import ScanFolderError, StationError
+from station.errors import BadInputError, ScanFolderError, StationError
 from station.process import sfm
+from station.process.colmap_export import colmap_model, write_colmap_model
+from station.process.images_io import read_exr, write_exr_half
+from station.process.lens import Lens, Undistortion, displacement_px, lens_from_colmap, undistortion
 from station.process.rig_model import PosedView, RigModel, apply_similarity, calibrate_rig, rotation_angle_deg, umeyama
 from station.process.transforms import PosedFrame, Transforms, read_transforms, write_transforms
 from station.process.visual_hull import carve, ring_frame
 from station.rig_geometry import RigGeometry
-from station.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_json, atomic_write_with
+from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
 
 
 class PosingError(StationError):
@@ -47,6 +51,7 @@ class PoseSettings:
     # Foreign scans have no rig to lean on and often sparse views: pay for affine SIFT there, where it
     # lowers the worst camera error.
     fallback_affine_sift: bool = True
+    min_undistort_px: float = 0.1  # distortion moving no border pixel further than this is left in (no resample)
 
 
 @dataclass
@@ -61,6 +66,8 @@ class PoseReport:
     reprojection_error_px: float
     mean_track_length: float
     cross_check: dict = field(default_factory=dict)
+    reprojection_by_ring_px: dict[str, float] = field(default_factory=dict)  # elevation (or "all") -> mean error
+    lens: dict = field(default_factory=dict)  # the self-calibrated camera of the developed images, and its fate
     flags: list[str] = field(default_factory=list)
     seconds: float = 0.0
 
@@ -144,12 +151,17 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             mask_dir = work / "masks"
             sfm.write_colmap_masks(masks, mask_dir, settings.sfm.mask_erode_px)
         names = [r.name for r in refs]
+        calibrate = settings.sfm.self_calibrate
+        note: str | None = "lens held: self-calibration off" if not calibrate else "lens held: no SfM points"
         if use_rig:
-            intr = rig.intrinsics.scaled(width, height)
+            prior = rig.lens().scaled(width, height)
+            camera = (prior.refinable() if calibrate else prior).to_colmap(keep_model=True)
             rig_poses = {r.name: rig.camera_to_world(r.elevation_deg, r.azimuth_deg) for r in refs}
-            sfm.extract_and_match(database, scan.images_dir, names, mask_dir, intr, settings.sfm)
+            sfm.extract_and_match(database, scan.images_dir, names, mask_dir, camera, settings.sfm)
             rec = sfm.reconstruction_from_poses(database, rig_poses)
             rec = sfm.triangulate_fixed(rec, database, scan.images_dir, work / "triangulated", settings.sfm)
+            if calibrate and rec.num_points3D():
+                rec, note = sfm.self_calibrate(rec, settings.sfm, hold_poses=True)
             poses = rig_poses
             report = PoseReport("rig", len(refs), planned, sorted(poses), [], 0, "sfm", 0.0, 0.0, flags=flags)
             if settings.cross_check:
@@ -159,19 +171,21 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
                 flags.extend(report.cross_check.pop("flags"))
         else:
             scan_rig = _scan_rig(scan)
-            intr = None
+            camera = None
             if scan_rig is not None:
                 k = scan_rig.scaled(width, height).intrinsics()
-                intr = sfm.Intrinsics(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+                prior = Lens(sfm.Intrinsics(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2]))
+                camera = (prior.refinable() if calibrate else prior).to_colmap(keep_model=True)
             fallback = replace(settings.sfm, affine_sift=settings.fallback_affine_sift, refine_principal_point=True)
-            sfm.extract_and_match(database, scan.images_dir, names, mask_dir, intr, fallback)
-            rec = sfm.map_incremental(database, scan.images_dir, work / "mapped", fallback, False, intr is not None)
+            sfm.extract_and_match(database, scan.images_dir, names, mask_dir, camera, fallback)
+            rec = sfm.map_incremental(database, scan.images_dir, work / "mapped", fallback, False, camera is not None)
             if rec is None or rec.num_reg_images() < 3:
                 raise PosingError(f"{scan.root}: SfM registered {0 if rec is None else rec.num_reg_images()} views")
+            if calibrate and rec.num_points3D():
+                rec, note = sfm.self_calibrate(rec, settings.sfm, hold_poses=False)
             rec, scaled = _turntable_gauge(rec, scan_rig)
             if not scaled:
                 flags.append("no rig in scan.json: scale is SfM units, not metres")
-            intr = _intrinsics_of(rec, width, height)
             poses = sfm.registered_poses(rec)
             missing = [n for n in names if n not in poses]
             if missing:
@@ -179,6 +193,14 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             report = PoseReport("sfm", len(refs), planned, sorted(poses), missing, 0, "sfm", 0.0, 0.0, flags=flags)
         report.reprojection_error_px = float(rec.compute_mean_reprojection_error()) if rec.num_points3D() else 0.0
         report.mean_track_length = float(rec.compute_mean_track_length()) if rec.num_points3D() else 0.0
+        report.reprojection_by_ring_px = _ring_errors(rec, refs)
+        lens, undistort = _lens_of(rec, settings, flags)
+        report.lens = {"intrinsics": vars(lens.intrinsics), **lens.to_dict(), "max_shift_px": displacement_px(lens),
+                       "undistorted": undistort is not None, "self_calibration": note or "refined"}
+        intr = undistort.target if undistort is not None else lens.intrinsics
+        if undistort is not None:
+            _undistort_scan(scan, undistort)
+            masks = {name: undistort.mask(m) for name, m in masks.items()}
         xyz, rgb = sfm.points_and_colours(rec)
         if len(xyz) < settings.min_points:
             if len(masks) == len(refs):
@@ -191,7 +213,7 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             else:
                 flags.append(f"only {rec.num_points3D()} SfM points and no masks to carve a hull: sparse start")
         report.points = len(xyz)
-        _write_outputs(scan, rec, refs, poses, intr, xyz, rgb, work)
+        _write_outputs(scan, rec if report.init_cloud == "sfm" else None, lens, refs, poses, intr, xyz, rgb)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     report.seconds = time.monotonic() - started
@@ -246,10 +268,49 @@ def _cross_check(database: Path, image_dir: Path, work: Path, rig_poses: dict[st
     return out
 
 
-def _intrinsics_of(rec: pycolmap.Reconstruction, width: int, height: int) -> sfm.Intrinsics:
+def _ring_errors(rec: pycolmap.Reconstruction, refs: list[FrameRef]) -> dict[str, float]:
+    """Mean reprojection error per elevation ring: a ring the shared lens fits worse points at a moved camera."""
+    errors = sfm.reprojection_errors(rec)
+    rings: dict[str, list[np.ndarray]] = {}
+    for ref in refs:
+        if ref.name in errors:
+            rings.setdefault("all" if ref.elevation_deg is None else f"{ref.elevation_deg:g}", []).append(errors[ref.name])
+    return {ring: float(np.concatenate(e).mean()) for ring, e in rings.items() if sum(map(len, e))}
+
+
+def _lens_of(rec: pycolmap.Reconstruction, settings: PoseSettings, flags: list[str]) -> tuple[Lens, Undistortion | None]:
+    """The shared camera as posed, and the remap to a pinhole when its distortion is worth one."""
     camera = next(iter(rec.cameras.values()))
-    k = camera.calibration_matrix()
-    return sfm.Intrinsics(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+    try:
+        lens = lens_from_colmap(camera, "self-calibration")
+    except BadInputError as exc:
+        flags.append(f"{exc}: distortion ignored")
+        k = camera.calibration_matrix()
+        return Lens(sfm.Intrinsics(camera.width, camera.height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])), None
+    return lens, undistortion(lens, settings.min_undistort_px)
+
+
+def _undistort_scan(scan: ScanFolder, undistort: Undistortion) -> None:
+    """Undistort, once and in place, every developed image, mask and linear EXR (plates too): what training
+    and the mask re-cut read then all share the pinhole camera."""
+    for folder in (scan.images_dir, scan.masks_dir):
+        for path in sorted(folder.glob("*.png")):
+            data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if data is None:
+                raise ScanFolderError(f"{path}: unreadable image")
+            out = undistort.mask(data) if folder == scan.masks_dir else undistort.image(data)
+            _rewrite_png(path, out)
+    if scan.images_linear_dir.is_dir():
+        for path in sorted(scan.images_linear_dir.glob("*.exr")):
+            write_exr_half(path, undistort.image(read_exr(path)))
+
+
+def _rewrite_png(path: Path, data: np.ndarray) -> None:
+    def writer(tmp: Path) -> None:
+        if not cv2.imwrite(str(tmp), data):
+            raise OSError(f"{path}: OpenCV could not write the undistorted image")
+
+    atomic_write_with(path, writer)
 
 
 def _turntable_gauge(rec: pycolmap.Reconstruction, rig: RigGeometry | None) -> tuple[pycolmap.Reconstruction, bool]:
@@ -270,18 +331,14 @@ def _turntable_gauge(rec: pycolmap.Reconstruction, rig: RigGeometry | None) -> t
     return rec, rig is not None
 
 
-def _write_outputs(scan: ScanFolder, rec: pycolmap.Reconstruction, refs: list[FrameRef],
-                   poses: dict[str, np.ndarray], intr: sfm.Intrinsics, xyz: np.ndarray, rgb: np.ndarray,
-                   work: Path) -> None:
-    out = work / "colmap_out"
-    out.mkdir()
-    rec.write_binary(str(out))
-    for path in sorted(out.iterdir()):
-        atomic_write_bytes(scan.poses_dir / "colmap" / path.name, path.read_bytes())
+def _write_outputs(scan: ScanFolder, tracks: pycolmap.Reconstruction | None, lens: Lens, refs: list[FrameRef],
+                   poses: dict[str, np.ndarray], intr: sfm.Intrinsics, xyz: np.ndarray, rgb: np.ndarray) -> None:
     atomic_write_with(scan.poses_dir / "points3d.ply", lambda tmp: write_point_ply(tmp, xyz, rgb))
     frames = [PosedFrame(f"images/{r.name}", poses[r.name], f"masks/{r.mask_name}" if r.mask_name else None)
               for r in refs if r.name in poses]
-    write_transforms(scan, Transforms(intr, frames, "poses/points3d.ply"))
+    transforms = Transforms(intr, frames, "poses/points3d.ply")
+    write_transforms(scan, transforms)
+    write_colmap_model(scan, colmap_model(transforms, (xyz, rgb), tracks, lens))
 
 
 def write_point_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
@@ -311,4 +368,5 @@ def calibrate_from_scan(scan: ScanFolder, settings: PoseSettings, nominal: RigMo
     by_name = {r.name: r for r in refs}
     views = [PosedView(by_name[Path(f.file_path).name].elevation_deg, by_name[Path(f.file_path).name].azimuth_deg,
                        f.c2w) for f in read_transforms(scan).frames]
-    return calibrate_rig(views, nominal), report
+    lens = Lens.from_dict(sfm.Intrinsics(**report.lens["intrinsics"]), report.lens, f"{scan.poses_dir}: lens")
+    return calibrate_rig(views, nominal, lens if settings.sfm.self_calibrate else None), report

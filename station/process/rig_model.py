@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from station.errors import BadInputError
+from station.process.lens import Lens
 from station.process.sfm import Intrinsics
 from station.rig_geometry import RigGeometry, camera_to_turntable
 from station.scanfolder import atomic_write_json
@@ -89,6 +90,15 @@ class RigModel:
     axis_dir: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
     kind: str = "nominal"
     residuals: dict[str, float] = field(default_factory=dict)
+    distortion: Lens | None = None  # the lens self-calibration found (at `intrinsics`); None: pinhole, unrefined
+
+    def __post_init__(self) -> None:
+        if self.distortion is not None and self.distortion.intrinsics != self.intrinsics:
+            raise BadInputError(f"rig model ({self.kind}): the lens's intrinsics differ from the model's")
+
+    def lens(self) -> Lens:
+        """The camera posing starts from: the calibrated lens, else the nominal pinhole."""
+        return self.distortion if self.distortion is not None else Lens(self.intrinsics)
 
     @staticmethod
     def nominal(rig: RigGeometry, elevations_deg: list[float]) -> "RigModel":
@@ -127,6 +137,7 @@ class RigModel:
             "axis_dir": self.axis_dir.tolist(),
             "elevations": [{"elevation_deg": e, "c2w": p.tolist()} for e, p in sorted(self.elevation_poses.items())],
             "residuals": self.residuals,
+            **({"lens": self.distortion.to_dict()} if self.distortion is not None else {}),
         }
 
     @staticmethod
@@ -142,8 +153,12 @@ class RigModel:
             raise BadInputError(f"{source}: every elevation 'c2w' must be a finite 4x4 matrix")
         if axis_point.shape != (3,) or axis_dir.shape != (3,) or np.linalg.norm(axis_dir) < 1e-9:
             raise BadInputError(f"{source}: 'axis_point' and 'axis_dir' must be 3-vectors, axis_dir non-zero")
+        lens = data.get("lens")
+        if lens is not None and not isinstance(lens, dict):
+            raise BadInputError(f"{source}: 'lens' must be an object")
         return RigModel(intr, poses, axis_point, axis_dir, str(data.get("kind", "calibrated")),
-                        {str(k): float(v) for k, v in data.get("residuals", {}).items()})
+                        {str(k): float(v) for k, v in data.get("residuals", {}).items()},
+                        None if lens is None else Lens.from_dict(intr, lens, f"{source}: lens"))
 
     def save(self, path: Path) -> None:
         atomic_write_json(Path(path), self.to_dict())
@@ -168,12 +183,13 @@ class PosedView:
     c2w: np.ndarray  # [4, 4] OpenCV camera-to-world in the SfM frame (any gauge)
 
 
-def calibrate_rig(views: list[PosedView], nominal: RigModel) -> RigModel:
+def calibrate_rig(views: list[PosedView], nominal: RigModel, lens: Lens | None = None) -> RigModel:
     """Fit the axis and the per-elevation poses to SfM poses of one full scan.
 
     The SfM gauge (scale, rotation, origin) is fixed by a similarity onto the nominal cameras,
     so the model stays metric and keeps the plate-surface origin; everything else (axis tilt
-    and offset, true tilt angles, arm length, camera roll) comes from the images.
+    and offset, true tilt angles, arm length, camera roll) comes from the images, and so does
+    `lens` (self-calibrated intrinsics and distortion, at the developed images' size) when given.
     """
     if len(views) < 6:
         raise BadInputError(f"rig calibration: needs at least 6 registered views, got {len(views)}")
@@ -232,7 +248,8 @@ def calibrate_rig(views: list[PosedView], nominal: RigModel) -> RigModel:
         "axis_offset_from_nominal_m": float(np.linalg.norm(axis_point)),
         "sfm_to_metric_scale": scale,
     }
-    return RigModel(model.intrinsics, elevation_poses, model.axis_point, model.axis_dir, "calibrated", residuals)
+    intr = lens.intrinsics if lens is not None else model.intrinsics
+    return RigModel(intr, elevation_poses, model.axis_point, model.axis_dir, "calibrated", residuals, lens)
 
 
 def _fit_circle_axis(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Intrinsics:
-    """Pinhole intrinsics in pixels (no distortion: our images are developed undistorted)."""
+    """Pinhole intrinsics in pixels; a lens's distortion is in `lens.Lens` and undistorted before training."""
 
     width: int
     height: int
@@ -61,6 +61,11 @@ class SfmSettings:
     guided_matching: bool = False
     affine_sift: bool = False  # affine-adapted, domain-size-pooled SIFT: wide baselines, ~2x the time
     refine_principal_point: bool = False  # only when intrinsics are unknown and the views ring the object
+    self_calibrate: bool = True  # refine focal, principal point, k1, k2, p1, p2 after posing
+    calibration_loss_px: float = 1.0  # Cauchy scale of the self-calibration: mismatches weigh little
+    # Distortion is only observable where features reach: tracks must span this share of the half-diagonal
+    calibration_min_reach: float = 0.6
+    calibration_min_gain: float = 0.05  # keep the refined lens only if it cuts the mean error by this share
 
 
 @contextmanager
@@ -93,16 +98,16 @@ def extract_and_match(
     image_dir: Path,
     names: list[str],
     mask_dir: Path | None,
-    intrinsics: Intrinsics | None,
+    camera: pycolmap.Camera | None,
     settings: SfmSettings,
 ) -> None:
     """Masked SIFT into a fresh database, then exhaustive matching (sequential cannot close the loop)."""
     reader = pycolmap.ImageReaderOptions()
     if mask_dir is not None:
         reader.mask_path = str(mask_dir)
-    if intrinsics is not None:
-        reader.camera_model = "PINHOLE"
-        reader.camera_params = f"{intrinsics.fx},{intrinsics.fy},{intrinsics.cx},{intrinsics.cy}"
+    if camera is not None:
+        reader.camera_model = camera.model.name
+        reader.camera_params = ",".join(repr(float(p)) for p in camera.params)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = settings.num_threads
     extraction.sift.max_num_features = settings.max_features
@@ -236,3 +241,71 @@ def points_and_colours(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.nda
     xyz = np.array([p.xyz for p in pts])
     rgb = np.array([p.color for p in pts], dtype=np.uint8)
     return xyz, rgb
+
+
+def self_calibrate(rec: pycolmap.Reconstruction, settings: SfmSettings,
+                   hold_poses: bool) -> tuple[pycolmap.Reconstruction, str | None]:
+    """Bundle-adjust the shared camera (focal, principal point, distortion) and the points on a copy.
+
+    With `hold_poses` every view stays where the rig model put it (the rig is the prior; the lens
+    alone must explain what is left); without, poses are refined too and only the gauge is fixed.
+    Returns the refined model, or `rec` unchanged and why: tracks that stay near the centre cannot
+    tell distortion from focal length, and a lens that does not fit better is noise fitted.
+    """
+    observed = [p.xy for image in rec.images.values() if image.has_pose for p in image.points2D if p.has_point3D()]
+    camera = next(iter(rec.cameras.values()))
+    centre = np.array([camera.principal_point_x, camera.principal_point_y])
+    reach = np.percentile(np.linalg.norm(np.array(observed) - centre, axis=1), 95) / (0.5 * np.hypot(camera.width,
+                                                                                                       camera.height))
+    if reach < settings.calibration_min_reach:
+        return rec, (f"lens not self-calibrated: features reach {100 * reach:.0f} % of the half-diagonal, "
+                     f"{100 * settings.calibration_min_reach:.0f} % needed (fill more of the frame)")
+    held, refined = pycolmap.Reconstruction(rec), pycolmap.Reconstruction(rec)
+    _bundle_adjust_camera(held, settings, hold_poses, refine_camera=False)  # what the prior lens alone reaches
+    _bundle_adjust_camera(refined, settings, hold_poses, refine_camera=True)
+    before = np.concatenate(list(reprojection_errors(held).values())).mean()
+    after = np.concatenate(list(reprojection_errors(refined).values())).mean()
+    if after > (1.0 - settings.calibration_min_gain) * before:
+        return rec, f"lens not self-calibrated: refining it moved the mean error only from {before:.3f} to {after:.3f} px"
+    return refined, None
+
+
+@colmap_log_level()
+def _bundle_adjust_camera(rec: pycolmap.Reconstruction, settings: SfmSettings, hold_poses: bool,
+                          refine_camera: bool) -> None:
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    if hold_poses:
+        for frame_id in rec.reg_frame_ids():
+            config.set_constant_rig_from_world_pose(frame_id)
+    else:
+        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = refine_camera
+    options.refine_principal_point = refine_camera
+    options.refine_extra_params = refine_camera
+    options.refine_rig_from_world = not hold_poses
+    options.refine_sensor_from_rig = False
+    options.print_summary = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = settings.calibration_loss_px
+    options.ceres.solver_options.num_threads = settings.num_threads
+    pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
+
+
+def reprojection_errors(rec: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
+    """Per registered image, the pixel distance of each observation from its 3D point's projection."""
+    out = {}
+    for image in rec.images.values():
+        if not image.has_pose:
+            continue
+        seen = [p for p in image.points2D if p.has_point3D()]
+        if not seen:
+            out[image.name] = np.zeros(0)
+            continue
+        xyz = np.array([rec.points3D[p.point3D_id].xyz for p in seen])
+        cam = xyz @ image.cam_from_world().rotation.matrix().T + image.cam_from_world().translation
+        projected = rec.cameras[image.camera_id].img_from_cam(cam, check_cheirality=False)
+        out[image.name] = np.linalg.norm(projected - np.array([p.xy for p in seen]), axis=1)
+    return out
