@@ -269,7 +269,7 @@ def against(rev: str, rounds: int, out: Path) -> None:
                   f"{med['before', 'step_ms']:>10.1f} "
                   f"{med['after', 'step_ms']:>9.1f} {row['wall_ratio_after_over_before']:>6.2f}", flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"before": rev, "after": "working tree", "rounds": rounds, "threads": 2,
+    out.write_text(json.dumps({"benchmark": "raster", "before": rev, "after": "working tree", "rounds": rounds, "threads": 2,
                                "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
                                "configs": rows}, indent=2) + "\n")
     print(f"wrote {out}")
