@@ -10,7 +10,6 @@ and how much of the capture overhead the pipelining hides.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys

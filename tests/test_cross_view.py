@@ -18,13 +18,13 @@ from station.process.cross_view import CrossViewSettings, Hull, carve_hull, proj
 from station.process.develop_stage import ProcessSettings
 from station.process.images_io import read_mask_png
 from station.process.masks import compute_mask
-from station.process.sfm import Intrinsics
+from station.formats.transforms import PinholeCamera
 from station.process.stage import process_scan
 from station.rig_geometry import RigGeometry, camera_to_turntable
 from station.scanfolder import ScanFolder
 
 RIG = RigGeometry()
-INTRINSICS = Intrinsics(RIG.width, RIG.height, RIG.focal_px, RIG.focal_px, RIG.width / 2, RIG.height / 2)
+INTRINSICS = PinholeCamera(RIG.width, RIG.height, RIG.focal_px, RIG.focal_px, RIG.width / 2, RIG.height / 2)
 
 
 @pytest.fixture(scope="module")

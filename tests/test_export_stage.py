@@ -31,7 +31,7 @@ from station.ngs.gaussians import Gaussians
 from station.ngs.infill import Camera, InfillConfig, build_infill
 from station.ngs.raster import rasterization
 from station.process.images_io import srgb_to_linear, write_mask_png, write_png16
-from station.process.sfm import Intrinsics
+from station.formats.transforms import PinholeCamera
 from station.process.transforms import PosedFrame, Transforms, write_transforms
 from station.rig_geometry import RigGeometry, camera_to_turntable
 from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
@@ -82,7 +82,7 @@ def build_scan(root: Path, seed: int = 3, n_per_layer: int = 4000) -> ScanFolder
     scan = ScanFolder(root)
     stone = procedural_stone(seed, size_m=0.08)
     rig = RigGeometry().scaled(*SIZE)
-    intr = Intrinsics(SIZE[0], SIZE[1], rig.focal_px, rig.focal_px, SIZE[0] / 2, SIZE[1] / 2)
+    intr = PinholeCamera(SIZE[0], SIZE[1], rig.focal_px, rig.focal_px, SIZE[0] / 2, SIZE[1] / 2)
     model = disc_surface(stone.mesh, stone.albedo, n_per_layer, opacity=0.995)
     g = {k: v.detach() for k, v in model.activated().items()}
     c2ws = np.array([camera_to_turntable(e, a * 360.0 / AZIMUTHS, rig) for e in ELEVATIONS for a in range(AZIMUTHS)])

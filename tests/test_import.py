@@ -424,10 +424,10 @@ def test_a_singular_idr_projection_and_a_truncated_image_are_clear_errors(tmp_pa
 
 
 def test_write_transforms_refuses_intrinsics_no_lens_has(tmp_path):
-    from station.process.sfm import Intrinsics
+    from station.formats.transforms import PinholeCamera
     from station.process.transforms import PosedFrame, Transforms, write_transforms
 
     frame = PosedFrame("images/a.png", np.eye(4))
     with pytest.raises(BadInputError, match="transforms.json: fl_x: must be positive"):
-        write_transforms(ScanFolder(tmp_path), Transforms(Intrinsics(W, H, -F, F, W / 2, H / 2), [frame]))
+        write_transforms(ScanFolder(tmp_path), Transforms(PinholeCamera(W, H, -F, F, W / 2, H / 2), [frame]))
     assert not ScanFolder(tmp_path).transforms_path.exists()

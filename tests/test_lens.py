@@ -11,7 +11,7 @@ from station.process import sfm
 from station.process.colmap_export import colmap_model, write_colmap_model
 from station.process.lens import Lens, check_unfolded, displacement_px, lens_from_colmap, undistortion
 from station.process.rig_model import RigModel
-from station.process.sfm import Intrinsics
+from station.formats.transforms import PinholeCamera
 from station.process.transforms import PosedFrame, Transforms
 from station.rig_geometry import RigGeometry, look_at_c2w
 from station.scanfolder import ScanFolder
@@ -88,7 +88,7 @@ def test_self_calibration_keeps_the_prior_when_the_lens_is_unobservable_or_fits_
 
 
 def test_the_fold_check_refuses_a_radial_map_that_turns_back_inside_the_image():
-    intr = Intrinsics(W, H, 200.0, 200.0, W / 2, H / 2)  # corners at a normalised radius of 1.0
+    intr = PinholeCamera(W, H, 200.0, 200.0, W / 2, H / 2)  # corners at a normalised radius of 1.0
     # r (1 + k1 r^2) peaks at r = 1 / sqrt(-3 k1) with height 2 / 3 of that: 1.22 for k1 = -0.1, 0.99 for -0.15
     check_unfolded(Lens(intr, "OPENCV", (-0.1, 0, 0, 0, 0, 0, 0, 0)), "mild")
     with pytest.raises(BadInputError, match=r"strong: OPENCV distortion .* folds the image: .* turns back 199 px"):
@@ -129,7 +129,7 @@ def test_the_colmap_export_round_trips_through_pycolmap_with_undistorted_tracks(
 
 
 def test_an_exported_cloud_without_tracks_round_trips_too(tmp_path):
-    intr = Intrinsics(W, H, 300.0, 300.0, W / 2, H / 2)
+    intr = PinholeCamera(W, H, 300.0, 300.0, W / 2, H / 2)
     frames = [PosedFrame(f"images/v{i}.png", c2w) for i, (_, c2w) in enumerate(ring_poses(count=4))]
     xyz, rgb = np.random.default_rng(1).normal(size=(50, 3)), np.full((50, 3), 7, np.uint8)
     folder = write_colmap_model(ScanFolder(tmp_path), colmap_model(Transforms(intr, frames), (xyz, rgb)))

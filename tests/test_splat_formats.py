@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from station.errors import BadInputError
-from station.export import dotsplat, gltf, ply, spz
+from station.export import dotsplat, gltf, ply
 from station.export.splat_formats import FORMATS, read_splat, write_splat
 from station.export.splat_model import (
     TURNTABLE_TO_YDOWN,

@@ -14,7 +14,6 @@ import torch
 from station.errors import BadInputError, TrainingError
 from station.ngs.dataset import OPENGL_TO_OPENCV, downscaled_view, load_scene
 from station.ngs.conventions import rgb_to_sh
-from station.ngs.gaussians import Gaussians
 from station.ngs.infill import InfillConfig
 from station.ngs.losses import LossConfig, alpha_losses
 from station.ngs.ngs_schedule import NGSConfig

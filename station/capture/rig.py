@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 from typing import Callable, Protocol
 from urllib.parse import parse_qs, urlsplit
 
-from station.capture.still import CameraReport, CameraSettings, PendingFrame, PtpStillCamera
+from station.capture.session import PendingFrame
+from station.capture.still import CameraReport, CameraSettings, PtpStillCamera
 from station.errors import BadInputError
 from station.rig_geometry import RigGeometry
 from station.turntable.grbl import Turntable, TurntableConfig

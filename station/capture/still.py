@@ -17,7 +17,6 @@ import tifffile
 
 from station.capture.ptp import PtpCamera
 from station.capture.ptp_codec import DevicePropCode, ObjectFormat, OperationCode
-from station.capture.session import PendingFrame
 from station.errors import DeviceError
 
 log = logging.getLogger(__name__)

@@ -30,12 +30,22 @@ CAMERA_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy")
 
 @dataclass(frozen=True)
 class PinholeCamera:
+    """Pinhole intrinsics in pixels, shared by every stage; a lens's distortion is in `process.lens.Lens`
+    and undistorted before training."""
+
     width: int
     height: int
     fx: float
     fy: float
     cx: float
     cy: float
+
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, width: int, height: int) -> "PinholeCamera":
+        sx, sy = width / self.width, height / self.height
+        return PinholeCamera(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
 
 
 @dataclass(frozen=True)

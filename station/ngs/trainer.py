@@ -19,7 +19,7 @@ import torch
 from station.errors import TrainingError
 from station.ngs.checkpoint_io import load_training_checkpoint
 from station.ngs.dataset import SceneData, View, downscaled_view
-from station.ngs.gaussians import Gaussians, num_sh_bases
+from station.ngs.gaussians import Gaussians
 from station.ngs.infill import Camera
 from station.ngs.losses import LossConfig, total_loss
 from station.ngs.ngs_schedule import NGSConfig, NGSPhases

@@ -38,7 +38,7 @@ from station.process.develop_stage import (
     write_training_view,
 )
 from station.process.images_io import read_exr, read_mask_png
-from station.process.sfm import Intrinsics
+from station.formats.transforms import PinholeCamera
 from station.process.transforms import read_transforms
 from station.process.visual_hull import carve_grid, grid_points, surface_voxels, view_bounds
 from station.scanfolder import ScanFolder
@@ -80,7 +80,7 @@ class Hull:
 
 
 def carve_hull(
-    c2ws: list[np.ndarray], masks: list[np.ndarray], intr: Intrinsics, settings: CrossViewSettings,
+    c2ws: list[np.ndarray], masks: list[np.ndarray], intr: PinholeCamera, settings: CrossViewSettings,
     missing_views: float = 0.0,
 ) -> Hull:
     """The visual hull of `masks`, carved coarse over the whole view box, then about a pixel fine around the stone.
@@ -104,7 +104,7 @@ def carve_hull(
     return Hull(fine[surface_voxels(inside, resolution)], (hi - lo) / (resolution - 1))
 
 
-def project_hull(hull: Hull, c2w: np.ndarray, intr: Intrinsics) -> np.ndarray:
+def project_hull(hull: Hull, c2w: np.ndarray, intr: PinholeCamera) -> np.ndarray:
     """The hull's silhouette [H, W] bool in a view: each surface voxel drawn as 2x2x2 points across its cell,
     holes filled (a solid's silhouette has none; drawn points leave pinholes where the surface is seen face-on)."""
     silhouette = np.zeros((intr.height, intr.width), dtype=bool)

@@ -40,7 +40,6 @@ from station.process.colmap_export import colmap_model, write_colmap_model
 from station.process.lens import Lens, lens_from_colmap, lens_from_nerfstudio, split_nerfstudio_lens, undistortion
 from station.process.poses import write_point_ply
 from station.process.rig_model import apply_similarity
-from station.process.sfm import Intrinsics
 from station.process.transforms import PosedFrame, Transforms, opengl_to_opencv, write_transforms
 from station.process.visual_hull import carve, ring_frame
 from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
@@ -68,7 +67,7 @@ class SourceFrame:
 
 @dataclass
 class SourceDataset:
-    intrinsics: Intrinsics
+    intrinsics: PinholeCamera
     frames: list[SourceFrame]
     points: tuple[np.ndarray, np.ndarray] | None = None  # xyz [N, 3] source units, rgb [N, 3] uint8
     lens: Lens | None = None  # the source camera's distortion, undistorted on import; None: pinhole
@@ -115,7 +114,7 @@ def _find_image(root: ScanFolder, rel: str, source: object, field: str) -> Path:
     raise FormatError(source, field, f"image {rel!r} not found in {root.root}")
 
 
-def _nerfstudio_camera(doc: NerfTransforms, image: Path, limits: ImageLimits) -> Intrinsics:
+def _nerfstudio_camera(doc: NerfTransforms, image: Path, limits: ImageLimits) -> PinholeCamera:
     """The shared camera: fl_x.. as given (fl_y, cx, cy defaulting as nerfstudio's loader does), or NeRF-synthetic's
     horizontal field of view with the principal point at the centre of the first image."""
     fields = {f.camera for f in doc.frames}
@@ -129,8 +128,7 @@ def _nerfstudio_camera(doc: NerfTransforms, image: Path, limits: ImageLimits) ->
     w, h = cam.width or width, cam.height or height
     fy = cam.fy if cam.fy is not None else cam.fx
     cx, cy = (cam.cx if cam.cx is not None else w / 2.0), (cam.cy if cam.cy is not None else h / 2.0)
-    full = pinhole(CameraFields(w, h, cam.fx, fy, cx, cy), doc.source)
-    return Intrinsics(full.width, full.height, full.fx, full.fy, full.cx, full.cy)
+    return pinhole(CameraFields(w, h, cam.fx, fy, cx, cy), doc.source)
 
 
 def read_nerfstudio(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDataset:
@@ -267,7 +265,7 @@ def read_idr(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDataset:
     width, height = checked_size(images[0], "image", limits)
     cam = PinholeCamera(width, height, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
     check_camera(cam, npz)
-    return SourceDataset(Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy), frames)
+    return SourceDataset(cam, frames)
 
 
 READERS = {"nerfstudio": read_nerfstudio, "colmap": read_colmap, "idr": read_idr}
@@ -283,8 +281,7 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
     if not src.is_dir():
         raise BadInputError(f"import: source {src} is not a folder")
     data = READERS[fmt](src, settings.image_limits)
-    camera = data.intrinsics
-    check_camera(PinholeCamera(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy), src)
+    check_camera(data.intrinsics, src)
     units = settings.units_to_m if settings.units_to_m is not None else DEFAULT_UNITS_TO_M[fmt]
     if not units > 0:
         raise BadInputError(f"import: units_to_m must be positive, got {units}")

@@ -17,7 +17,7 @@ import numpy as np
 import pycolmap
 
 from station.errors import BadInputError
-from station.process.sfm import Intrinsics
+from station.formats.transforms import PinholeCamera
 
 OPENCV_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")  # OpenCV's rational model, full length
 FISHEYE_ORDER = ("k1", "k2", "k3", "k4")  # Kannala-Brandt, as OpenCV's cv2.fisheye and COLMAP's OPENCV_FISHEYE
@@ -37,9 +37,9 @@ _ITERATE = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
 
 @dataclass(frozen=True)
 class Lens:
-    """Intrinsics plus distortion: model "PINHOLE", "OPENCV" (Brown-Conrady, rational) or "OPENCV_FISHEYE"."""
+    """PinholeCamera plus distortion: model "PINHOLE", "OPENCV" (Brown-Conrady, rational) or "OPENCV_FISHEYE"."""
 
-    intrinsics: Intrinsics
+    intrinsics: PinholeCamera
     model: str = "PINHOLE"
     coefficients: tuple[float, ...] = ()  # OPENCV_ORDER (8) or FISHEYE_ORDER (4); empty for a pinhole
 
@@ -85,7 +85,7 @@ class Lens:
         return {"model": self.model, **self.named()}
 
     @staticmethod
-    def from_dict(intrinsics: Intrinsics, data: dict, where: str) -> "Lens":
+    def from_dict(intrinsics: PinholeCamera, data: dict, where: str) -> "Lens":
         model = data.get("model", "PINHOLE")
         if model not in ("PINHOLE", "OPENCV", "OPENCV_FISHEYE"):
             raise BadInputError(f"{where}: lens model {model!r} is not one of PINHOLE, OPENCV, OPENCV_FISHEYE")
@@ -101,7 +101,7 @@ def _coefficient(data: dict, key: str, where: str) -> float:
     return float(value)
 
 
-def _lens(intrinsics: Intrinsics, model: str, data: dict, where: str) -> Lens:
+def _lens(intrinsics: PinholeCamera, model: str, data: dict, where: str) -> Lens:
     if model == "PINHOLE":
         return Lens(intrinsics)
     order = FISHEYE_ORDER if model == "OPENCV_FISHEYE" else OPENCV_ORDER
@@ -127,7 +127,7 @@ def split_nerfstudio_lens(data: object, source: object) -> tuple[dict, object]:
     return lens, rest
 
 
-def lens_from_nerfstudio(data: dict, intrinsics: Intrinsics, where: str) -> Lens:
+def lens_from_nerfstudio(data: dict, intrinsics: PinholeCamera, where: str) -> Lens:
     """`camera_model` and k1..k4 / p1, p2 of a transforms.json (no model but coefficients: OPENCV)."""
     model = data.get("camera_model")
     if model is None:
@@ -149,7 +149,7 @@ def lens_from_colmap(camera: pycolmap.Camera, where: str) -> Lens:
         raise BadInputError(f"{where}: camera model {name} is not supported (supported: {', '.join(COLMAP_MODELS)})")
     model, names = COLMAP_MODELS[name]
     k = camera.calibration_matrix()
-    intr = Intrinsics(camera.width, camera.height, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+    intr = PinholeCamera(camera.width, camera.height, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
     extra = [float(camera.params[i]) for i in camera.extra_params_idxs()]
     lens = _lens(intr, model, dict(zip(names, extra)), where)
     check_unfolded(lens, where)
@@ -213,7 +213,7 @@ def displacement_px(lens: Lens) -> float:
     return float(np.max(np.hypot(i.fx * n[:, 0] + i.cx - border[:, 0], i.fy * n[:, 1] + i.cy - border[:, 1])))
 
 
-def pinhole_for(lens: Lens, samples: int = 256) -> Intrinsics:
+def pinhole_for(lens: Lens, samples: int = 256) -> PinholeCamera:
     """The pinhole camera, same size, square pixels, whose every pixel lands inside the distorted image."""
     i = lens.intrinsics
     us, vs = np.linspace(0.5, i.width - 0.5, samples), np.linspace(0.5, i.height - 0.5, samples)
@@ -227,14 +227,14 @@ def pinhole_for(lens: Lens, samples: int = 256) -> Intrinsics:
     if not (x1 > x0 and y1 > y0):
         raise BadInputError(f"lens {lens.model} {lens.named()}: undistorted image has no interior")
     f = max((i.width - 1) / (x1 - x0), (i.height - 1) / (y1 - y0))
-    return Intrinsics(i.width, i.height, f, f, i.width / 2 - f * (x0 + x1) / 2, i.height / 2 - f * (y0 + y1) / 2)
+    return PinholeCamera(i.width, i.height, f, f, i.width / 2 - f * (x0 + x1) / 2, i.height / 2 - f * (y0 + y1) / 2)
 
 
 @dataclass(frozen=True)
 class Undistortion:
     """Remap tables from a distorted lens to the pinhole `target`, built once and applied per image."""
 
-    target: Intrinsics
+    target: PinholeCamera
     map_x: np.ndarray  # [H, W] float32 source column (OpenCV pixel centres) for each target pixel
     map_y: np.ndarray
 

@@ -22,6 +22,7 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from station.errors import BadInputError, ScanFolderError, StationError
+from station.formats.transforms import PinholeCamera
 from station.process import sfm
 from station.process.colmap_export import colmap_model, write_colmap_model
 from station.process.images_io import read_exr, write_exr_half
@@ -174,7 +175,7 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             camera = None
             if scan_rig is not None:
                 k = scan_rig.scaled(width, height).intrinsics()
-                prior = Lens(sfm.Intrinsics(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2]))
+                prior = Lens(PinholeCamera(width, height, k[0, 0], k[1, 1], k[0, 2], k[1, 2]))
                 camera = (prior.refinable() if calibrate else prior).to_colmap(keep_model=True)
             fallback = replace(settings.sfm, affine_sift=settings.fallback_affine_sift, refine_principal_point=True)
             sfm.extract_and_match(database, scan.images_dir, names, mask_dir, camera, fallback)
@@ -286,7 +287,7 @@ def _lens_of(rec: pycolmap.Reconstruction, settings: PoseSettings, flags: list[s
     except BadInputError as exc:
         flags.append(f"{exc}: distortion ignored")
         k = camera.calibration_matrix()
-        return Lens(sfm.Intrinsics(camera.width, camera.height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])), None
+        return Lens(PinholeCamera(camera.width, camera.height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])), None
     return lens, undistortion(lens, settings.min_undistort_px)
 
 
@@ -332,7 +333,7 @@ def _turntable_gauge(rec: pycolmap.Reconstruction, rig: RigGeometry | None) -> t
 
 
 def _write_outputs(scan: ScanFolder, tracks: pycolmap.Reconstruction | None, lens: Lens, refs: list[FrameRef],
-                   poses: dict[str, np.ndarray], intr: sfm.Intrinsics, xyz: np.ndarray, rgb: np.ndarray) -> None:
+                   poses: dict[str, np.ndarray], intr: PinholeCamera, xyz: np.ndarray, rgb: np.ndarray) -> None:
     atomic_write_with(scan.poses_dir / "points3d.ply", lambda tmp: write_point_ply(tmp, xyz, rgb))
     frames = [PosedFrame(f"images/{r.name}", poses[r.name], f"masks/{r.mask_name}" if r.mask_name else None)
               for r in refs if r.name in poses]
@@ -368,5 +369,5 @@ def calibrate_from_scan(scan: ScanFolder, settings: PoseSettings, nominal: RigMo
     by_name = {r.name: r for r in refs}
     views = [PosedView(by_name[Path(f.file_path).name].elevation_deg, by_name[Path(f.file_path).name].azimuth_deg,
                        f.c2w) for f in read_transforms(scan).frames]
-    lens = Lens.from_dict(sfm.Intrinsics(**report.lens["intrinsics"]), report.lens, f"{scan.poses_dir}: lens")
+    lens = Lens.from_dict(PinholeCamera(**report.lens["intrinsics"]), report.lens, f"{scan.poses_dir}: lens")
     return calibrate_rig(views, nominal, lens if settings.sfm.self_calibrate else None), report

@@ -21,7 +21,7 @@ import numpy as np
 
 from station.errors import BadInputError
 from station.process.lens import Lens
-from station.process.sfm import Intrinsics
+from station.formats.transforms import PinholeCamera
 from station.rig_geometry import RigGeometry, camera_to_turntable
 from station.scanfolder import atomic_write_json
 
@@ -84,7 +84,7 @@ def apply_similarity(c2w: np.ndarray, scale: float, rot: np.ndarray, trans: np.n
 class RigModel:
     """Turntable axis and the azimuth-zero camera pose per elevation, with the intrinsics they go with."""
 
-    intrinsics: Intrinsics
+    intrinsics: PinholeCamera
     elevation_poses: dict[float, np.ndarray]  # elevation_deg -> [4, 4] OpenCV c2w at azimuth 0
     axis_point: np.ndarray = field(default_factory=lambda: np.zeros(3))
     axis_dir: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
@@ -104,7 +104,7 @@ class RigModel:
     def nominal(rig: RigGeometry, elevations_deg: list[float]) -> "RigModel":
         """The design geometry from scan.json, used until the station has been calibrated."""
         k = rig.intrinsics()
-        intr = Intrinsics(rig.width, rig.height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+        intr = PinholeCamera(rig.width, rig.height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
         poses = {float(e): camera_to_turntable(float(e), 0.0, rig) for e in elevations_deg}
         return RigModel(intrinsics=intr, elevation_poses=poses)
 
@@ -143,7 +143,7 @@ class RigModel:
     @staticmethod
     def from_dict(data: dict, source: str = "rig model") -> "RigModel":
         try:
-            intr = Intrinsics(**{k: data["intrinsics"][k] for k in ("width", "height", "fx", "fy", "cx", "cy")})
+            intr = PinholeCamera(**{k: data["intrinsics"][k] for k in ("width", "height", "fx", "fy", "cx", "cy")})
             poses = {float(e["elevation_deg"]): np.asarray(e["c2w"], dtype=np.float64) for e in data["elevations"]}
             axis_point = np.asarray(data["axis_point"], dtype=np.float64)
             axis_dir = np.asarray(data["axis_dir"], dtype=np.float64)

@@ -26,25 +26,6 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels; a lens's distortion is in `lens.Lens` and undistorted before training."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    def matrix(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    def scaled(self, width: int, height: int) -> "Intrinsics":
-        sx, sy = width / self.width, height / self.height
-        return Intrinsics(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
-
-
-@dataclass(frozen=True)
 class SfmSettings:
     max_features: int = 4096
     # Stones are low-contrast: COLMAP's default (0.0067) finds ~5 features on a simulated stone at

@@ -16,7 +16,6 @@ import numpy as np
 from station.errors import FormatError, ScanFolderError
 from station.formats.jsonfile import read_json_object
 from station.formats.transforms import PinholeCamera, check_camera, check_rotation, parse_transforms, shared_pinhole
-from station.process.sfm import Intrinsics
 from station.rig_geometry import opencv_to_opengl
 from station.scanfolder import ScanFolder, atomic_write_json
 
@@ -34,7 +33,7 @@ class PosedFrame:
 
 @dataclass(frozen=True)
 class Transforms:
-    intrinsics: Intrinsics
+    intrinsics: PinholeCamera
     frames: list[PosedFrame]
     ply_file_path: str | None = None
 
@@ -104,5 +103,4 @@ def read_transforms(scan: ScanFolder, check_files: bool = True) -> Transforms:
     ply = doc.ply_file_path
     if ply is not None:
         ply = _relative_path(scan, ply, source, "ply_file_path", check_files)
-    intr = Intrinsics(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
-    return Transforms(intr, frames, ply)
+    return Transforms(cam, frames, ply)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from station.process.sfm import Intrinsics
+from station.formats.transforms import PinholeCamera
 
 
 def convergence_point(c2ws: list[np.ndarray]) -> np.ndarray:
@@ -40,7 +40,7 @@ def ring_frame(c2ws: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([x, np.cross(up, x), up]), target
 
 
-def view_bounds(c2ws: list[np.ndarray], intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+def view_bounds(c2ws: list[np.ndarray], intr: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
     """An axis-aligned box that holds everything every camera can see around the convergence point."""
     centre = convergence_point(c2ws)
     dist = float(np.median([np.linalg.norm(c[:3, 3] - centre) for c in c2ws]))
@@ -57,7 +57,7 @@ def grid_points(lo: np.ndarray, hi: np.ndarray, resolution: int) -> np.ndarray:
 def carve_grid(
     c2ws: list[np.ndarray],
     masks: list[np.ndarray],
-    intr: Intrinsics,
+    intr: PinholeCamera,
     grid: np.ndarray,
     images: list[np.ndarray] | None = None,
     max_misses: int = 0,
@@ -113,7 +113,7 @@ def carve(
     c2ws: list[np.ndarray],
     masks: list[np.ndarray],
     images: list[np.ndarray],
-    intr: Intrinsics,
+    intr: PinholeCamera,
     resolution: int = 96,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Surface voxels of the visual hull [N, 3] and their mean colour over the views [N, 3] uint8."""
