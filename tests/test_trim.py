@@ -13,6 +13,7 @@ from station.ngs.dataset import SceneData, View
 from station.ngs.gaussians import Gaussians
 from station.ngs.infill import Infill
 from station.ngs.sos import evaluate
+from station.rig_geometry import look_at_c2w
 
 W, H = 64, 48
 
@@ -22,14 +23,9 @@ def camera(azimuth_deg: float) -> tuple[torch.Tensor, torch.Tensor]:
     a, e = np.radians(azimuth_deg), np.radians(20.0)
     target = np.array([0.0, 0.0, 0.03])
     eye = target + 0.3 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([right, np.cross(forward, right), forward], axis=1)
-    c2w[:3, 3] = eye
     K = np.array([[80.0, 0, W / 2], [0, 80.0, H / 2], [0, 0, 1]])
-    return torch.tensor(np.linalg.inv(c2w), dtype=torch.float32), torch.tensor(K, dtype=torch.float32)
+    viewmat = np.linalg.inv(look_at_c2w(eye, target))
+    return torch.tensor(viewmat, dtype=torch.float32), torch.tensor(K, dtype=torch.float32)
 
 
 def ball(n: int, radius: float, seed: int) -> np.ndarray:

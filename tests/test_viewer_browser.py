@@ -23,7 +23,9 @@ from station.export.mesh import write_mesh_files
 from station.export.splat_formats import write_splat
 from station.export.splat_model import TURNTABLE_TO_YUP, SplatModel
 from station.export.viewer_page import BUNDLE, ViewerCamera, bundle_text, write_viewer
+from station.ngs.conventions import rgb_to_sh
 from station.ngs.raster import rasterization
+from station.rig_geometry import look_at_c2w
 
 CHROMIUM = Path("/usr/bin/chromium")
 # WebGL through SwiftShader; the rest keep Chromium off this machine's closed network.
@@ -52,21 +54,15 @@ def egg_splat(n: int = 6000) -> SplatModel:
     height = (means[:, 2] / (2 * RADII[2]))[:, None]
     rgb = height * np.array([1.0, 0.5, 0.5]) + (1 - height) * np.array([0.5, 0.5, 1.0])
     quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
-    return SplatModel(means, np.full((n, 3), np.log(SIGMA)), quats, np.full(n, 4.0), (rgb - 0.5) / 0.28209479177387814,
+    return SplatModel(means, np.full((n, 3), np.log(SIGMA)), quats, np.full(n, 4.0), rgb_to_sh(rgb),
                       np.zeros((n, 0, 3)))
 
 
 def opencv_camera(camera: ViewerCamera) -> tuple[np.ndarray, np.ndarray]:
     """(world-to-camera OpenCV [4, 4], K [3, 3]) of the viewer's camera, in the turntable frame."""
     eye, target = TURNTABLE_TO_YUP.T @ camera.position, TURNTABLE_TO_YUP.T @ camera.target
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([right, np.cross(forward, right), forward], axis=1)
-    c2w[:3, 3] = eye
     f = (HEIGHT / 2) / np.tan(np.radians(camera.fovY) / 2)
-    return np.linalg.inv(c2w), np.array([[f, 0, WIDTH / 2], [0, f, HEIGHT / 2], [0, 0, 1]])
+    return np.linalg.inv(look_at_c2w(eye, target)), np.array([[f, 0, WIDTH / 2], [0, f, HEIGHT / 2], [0, 0, 1]])
 
 
 def project(points: np.ndarray, viewmat: np.ndarray, K: np.ndarray) -> np.ndarray:
