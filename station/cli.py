@@ -106,18 +106,19 @@ def process_command(
 @exits_on_station_errors
 def import_command(
     src: Path = typer.Argument(..., help="Posed dataset to bring in."),
-    fmt: str = typer.Option(..., "--format", help="nerfstudio, colmap or idr."),
+    fmt: str = typer.Option(..., "--format", help="nerfstudio, colmap, idr or middlebury."),
     out: Path = typer.Option(..., "--out", help="Scan folder to create at the posed stage."),
+    masks: str = typer.Option("none", "--masks", help="For a source without masks: none, or dark-backdrop."),
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Bring an existing posed dataset (images, optional masks, cameras) into a scan folder."""
     from dataclasses import asdict
 
-    from station.process.importers import import_dataset
+    from station.process.importers import ImportSettings, import_dataset
 
-    if fmt not in ("nerfstudio", "colmap", "idr"):
-        raise BadInputError(f"--format {fmt!r}: expected nerfstudio, colmap or idr")
-    report = import_dataset(src, fmt, out)  # type: ignore[arg-type]
+    if fmt not in ("nerfstudio", "colmap", "idr", "middlebury"):
+        raise BadInputError(f"--format {fmt!r}: expected nerfstudio, colmap, idr or middlebury")
+    report = import_dataset(src, fmt, out, ImportSettings(masks=masks))  # type: ignore[arg-type]
     emit(asdict(report), as_json, lambda r: err_console.print(f"imported {src} into {out}"))
 
 

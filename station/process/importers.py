@@ -12,6 +12,8 @@ Conventions read:
 - COLMAP model (cameras/images/points3D, .bin or .txt): world-to-camera, OpenCV axes.
 - IDR/NeuS (DTU): `cameras.npz` with `world_mat_i` = K [R|t] (P, world-to-image, DTU world in mm)
   and `scale_mat_i` (unit sphere -> world); images in `image/`, masks in `mask/`.
+- Middlebury multi-view (Seitz et al.): one `<set>_par.txt`, K [R | t] per image, world-to-camera,
+  OpenCV axes, metres; images beside it; no masks (`masks="dark-backdrop"` derives them).
 Distorted cameras (nerfstudio OPENCV/OPENCV_FISHEYE, COLMAP's radial and OpenCV models) are undistorted
 on import, masks alike (`lens.py`), and the pinhole that results is what transforms.json holds.
 """
@@ -23,7 +25,7 @@ import time
 import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
@@ -34,8 +36,10 @@ from station.errors import BadInputError, FormatError, ScanFolderError
 from station.formats.colmap import check_colmap_binary
 from station.formats.images import DEFAULT_LIMITS, ImageLimits, checked_size, open_pil
 from station.formats.jsonfile import read_json_object
+from station.formats.middlebury import parse_par, shared_k
 from station.formats.transforms import (CameraFields, NerfTransforms, PinholeCamera, check_camera, check_rotation,
                                         parse_transforms, pinhole)
+from station.process.backdrop_masks import dark_backdrop_mask
 from station.process.colmap_export import colmap_model, write_colmap_model
 from station.process.lens import Lens, lens_from_colmap, lens_from_nerfstudio, split_nerfstudio_lens, undistortion
 from station.process.poses import write_point_ply
@@ -44,10 +48,12 @@ from station.process.transforms import PosedFrame, Transforms, opengl_to_opencv,
 from station.process.visual_hull import carve, ring_frame
 from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
 
-Format = Literal["nerfstudio", "colmap", "idr"]
+Format = Literal["nerfstudio", "colmap", "idr", "middlebury"]
 Orient = Literal["auto", "keep", "ring"]
+MaskSource = Literal["none", "dark-backdrop"]
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-DEFAULT_UNITS_TO_M = {"nerfstudio": 1.0, "colmap": 1.0, "idr": 0.001}  # DTU's world is in millimetres
+DEFAULT_UNITS_TO_M = {"nerfstudio": 1.0, "colmap": 1.0, "idr": 0.001, "middlebury": 1.0}  # DTU's world is in mm
+DEFAULT_ORIENT = {"nerfstudio": "keep", "colmap": "ring", "idr": "ring", "middlebury": "ring"}
 
 
 @dataclass(frozen=True)
@@ -56,6 +62,7 @@ class ImportSettings:
     orient: Orient = "auto"  # keep source axes, or "ring": z along the camera ring's normal, cameras above
     hull_resolution: int = 96
     image_limits: ImageLimits = DEFAULT_LIMITS  # the largest source image decoded
+    masks: MaskSource = "none"  # for frames the source gives no mask: leave them unmasked, or derive one
 
 
 @dataclass
@@ -77,7 +84,7 @@ class SourceDataset:
 class ImportReport:
     format: str
     frames: int
-    masks: str  # "files", "alpha", or "none"
+    masks: str  # "files", "alpha", "dark-backdrop" (derived on import), or "none"
     units_to_m: float
     orient: str
     init_cloud: str  # "source", "visual_hull", or "none"
@@ -268,7 +275,31 @@ def read_idr(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDataset:
     return SourceDataset(cam, frames)
 
 
-READERS = {"nerfstudio": read_nerfstudio, "colmap": read_colmap, "idr": read_idr}
+def read_middlebury(src: Path, limits: ImageLimits = DEFAULT_LIMITS) -> SourceDataset:
+    """Middlebury multi-view: the one `*_par.txt` in `src`, and the images it names, all inside `src`."""
+    root = ScanFolder(src)
+    pars = sorted(p for p in src.iterdir() if p.name.endswith("_par.txt"))
+    if len(pars) != 1:
+        found = ", ".join(p.name for p in pars) or "none"
+        raise BadInputError(f"{src}: expected exactly one <set>_par.txt camera file, found {found}")
+    par = _inside(root, pars[0].name, src, pars[0].name)
+    if not par.is_file():
+        raise BadInputError(f"{par}: not a file")
+    cameras = parse_par(par.read_bytes(), par)
+    k = shared_k(cameras, par)
+    frames = []
+    for cam in cameras:
+        image = _inside(root, cam.name, par, f"line {cam.line}")
+        if image.suffix.lower() not in IMAGE_SUFFIXES or not image.is_file():
+            raise FormatError(par, f"line {cam.line}", f"image {cam.name!r} not found in {src} (or not a .png/.jpg)")
+        frames.append(SourceFrame(image, None, _rigid_inverse(cam.w2c, par, f"line {cam.line}")))
+    width, height = checked_size(frames[0].image, f"line {cameras[0].line}", limits)
+    cam = PinholeCamera(width, height, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+    check_camera(cam, par)
+    return SourceDataset(cam, frames)
+
+
+READERS = {"nerfstudio": read_nerfstudio, "colmap": read_colmap, "idr": read_idr, "middlebury": read_middlebury}
 
 
 def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings | None = None) -> ImportReport:
@@ -277,6 +308,8 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
     settings = settings or ImportSettings()
     if fmt not in READERS:
         raise BadInputError(f"import: unknown format {fmt!r} (choose from {', '.join(READERS)})")
+    if settings.masks not in get_args(MaskSource):
+        raise BadInputError(f"import: masks {settings.masks!r}: expected one of {', '.join(get_args(MaskSource))}")
     src = Path(src).resolve()
     if not src.is_dir():
         raise BadInputError(f"import: source {src} is not a folder")
@@ -285,7 +318,7 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
     units = settings.units_to_m if settings.units_to_m is not None else DEFAULT_UNITS_TO_M[fmt]
     if not units > 0:
         raise BadInputError(f"import: units_to_m must be positive, got {units}")
-    orient = {"nerfstudio": "keep", "colmap": "ring", "idr": "ring"}[fmt] if settings.orient == "auto" else settings.orient
+    orient = DEFAULT_ORIENT[fmt] if settings.orient == "auto" else settings.orient
     rot, origin = np.eye(3), np.zeros(3)
     if orient == "ring":
         rot, origin = ring_frame([f.c2w for f in data.frames])
@@ -318,6 +351,9 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
         elif rgba is not None:
             coverage = np.asarray(rgba)[:, :, 3]
             mask_kind = "alpha"
+        elif settings.masks == "dark-backdrop":
+            coverage = dark_backdrop_mask(rgb)
+            mask_kind = "dark-backdrop"
         if undistort is not None:
             rgb = undistort.image(rgb)
             coverage = None if coverage is None else undistort.mask(coverage)
