@@ -141,15 +141,16 @@ def test_dark_backdrop_masks_work_for_other_formats_without_masks(tmp_path):
         assert (mask & ball).sum() / (mask | ball).sum() > 0.95
 
 
-def test_dark_backdrop_mask_keeps_the_holes_seen_through_and_fills_small_ones():
-    rgb = np.zeros((60, 80, 3), np.uint8)
-    rgb[10:50, 10:70] = 200
-    rgb[20:40, 20:45] = 0  # a window onto the backdrop: large, stays open
-    rgb[25:27, 55:57] = 30  # a small dark crevice: filled
-    rgb[10:50, 30:34] = 60  # a shadowed column, dimmer than the rest
+def test_dark_backdrop_mask_keeps_shadow_and_holes_seen_through_drops_cloth_and_fills_crevices():
+    rgb = np.zeros((120, 160, 3), np.uint8)
+    rgb[20:100, 20:140] = 200
+    rgb[40:80, 40:90] = 0  # a window onto the backdrop, large against the object: stays open
+    rgb[50:59, 110:119] = 0  # a crevice as dark as the backdrop, too wide for the closing: filled as a hole
+    rgb[20:100, 60:68] = 60  # a shadowed column, dimmer than the rest
+    rgb[:, 140:] = 40  # lit cloth at the frame's side, as dim as the column, touching the object
     mask = dark_backdrop_mask(rgb) > 0
-    assert not mask[25:35, 22:29].any() and mask[25:27, 55:57].all() and mask[10:50, 30:34].all()
-    assert not mask[:5].any() and not mask[:, :5].any()
+    assert not mask[45:75, 45:58].any() and mask[50:59, 110:119].all() and mask[20:100, 60:68].all()
+    assert not mask[:10].any() and not mask[:, :10].any() and not mask[:, 143:].any()
 
 
 @pytest.mark.parametrize("spoil, match", [
