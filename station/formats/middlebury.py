@@ -59,7 +59,7 @@ def parse_par(data: bytes, path: Path) -> list[ParCamera]:
     if len(data) > MAX_PAR_BYTES:
         raise InputTooLargeError(path, None, f"{len(data)} bytes, over the {MAX_PAR_BYTES} limit")
     try:
-        text = data.decode("utf-8")
+        text = data.decode("utf-8-sig")  # a byte-order mark from a Windows editor is not a field
     except UnicodeDecodeError as exc:
         raise FormatError(path, None, f"not UTF-8 text (byte {exc.start})") from exc
     lines = [(n, line.split()) for n, line in enumerate(text.splitlines(), 1) if line.strip()]
