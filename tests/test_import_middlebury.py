@@ -199,6 +199,13 @@ def test_a_malformed_camera_line_is_refused_naming_file_and_line(tmp_path, line,
     assert not (tmp_path / "scan").exists()
 
 
+def test_a_frame_where_no_object_stands_out_is_refused_with_dark_backdrop_masks(tmp_path):
+    write_middlebury(tmp_path / "src", ring_c2ws(count=3))
+    Image.fromarray(np.full((H, W, 3), 5, np.uint8)).save(tmp_path / "src" / "blobSR0002.png")
+    with pytest.raises(FormatError, match="blobSR0002.png: --masks dark-backdrop found no object"):
+        import_dataset(tmp_path / "src", "middlebury", tmp_path / "scan", QUICK)
+
+
 def test_a_wrong_camera_count_and_an_image_linked_out_are_refused(tmp_path):
     write_middlebury(tmp_path / "src", ring_c2ws(count=3))
     set_line(tmp_path / "src", 1, "4")

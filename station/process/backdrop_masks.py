@@ -25,6 +25,7 @@ import numpy as np
 from scipy import ndimage
 from skimage.filters import threshold_otsu
 
+
 @dataclass(frozen=True)
 class DarkBackdropSettings:
     floor: float = 12.0  # 8-bit luminance no object pixel is darker than, whatever Otsu says
@@ -48,7 +49,7 @@ def _reaching_border(region: np.ndarray) -> np.ndarray:
 def _fill_small_holes(mask: np.ndarray, max_area: float) -> np.ndarray:
     """`mask` with every enclosed hole of at most `max_area` pixels filled; larger holes stay open."""
     holes = ndimage.binary_fill_holes(mask) & ~mask
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(holes.astype(np.uint8), connectivity=4)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(holes.astype(np.uint8), connectivity=4)
     small = 1 + np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] <= max_area)
     return mask | np.isin(labels, small)
 

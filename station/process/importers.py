@@ -353,6 +353,8 @@ def import_dataset(src: Path, fmt: Format, out: Path, settings: ImportSettings |
             mask_kind = "alpha"
         elif settings.masks == "dark-backdrop":
             coverage = dark_backdrop_mask(rgb)
+            if not coverage.any():
+                raise FormatError(frame.image, None, "--masks dark-backdrop found no object brighter than the backdrop")
             mask_kind = "dark-backdrop"
         if undistort is not None:
             rgb = undistort.image(rgb)
