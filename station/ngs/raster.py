@@ -2,7 +2,9 @@
 
 Backends share gsplat's conventions (see `raster_reference`): "torch" is the dense plain-torch reference,
 "cpu" the tile-parallel numba kernels, "gsplat" the CUDA library (imported lazily; untested here, as no
-GPU is available). "auto" picks gsplat for CUDA tensors when it is installed, else the numba kernels.
+GPU is available). "auto" picks gsplat for CUDA tensors when it is installed (else the reference there), the
+numba kernels for CPU tensors; the forward-only per-pixel queries run the numba kernels on host copies on
+every device and return their results on the input's device.
 """
 
 from __future__ import annotations
@@ -276,17 +278,19 @@ def _one_camera(caller: str, means: Tensor, quats: Tensor, scales: Tensor, opaci
         raise BadInputError(f"{caller}: K must be a [3, 3] tensor")
     rgb = means.new_zeros(means.shape) if torch.is_tensor(means) and means.dim() == 2 else means
     _validate(means, quats, scales, opacities, rgb, viewmat[None], K[None], width, height, None, None)
+    if backend == "auto":  # forward-only queries: the numba kernels on host copies, on any device
+        return "cpu"
     return _resolve_backend(backend, means.device)
 
 
 def _cpu_binned(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
                 width: int, height: int, near_plane: float) -> tuple[np.ndarray, ...]:
     """Project and bin for one camera with the numba kernels -> means2d, conics, depths, opacities, bins."""
-    gauss = [t.contiguous().numpy() for t in (means, quats, scales)]
-    cams = [t[None].contiguous().numpy() for t in (viewmat, K, ref.camera_centres(viewmat[None])[0])]
+    gauss = [np.ascontiguousarray(_host(t)) for t in (means, quats, scales)]
+    cams = [np.ascontiguousarray(_host(t[None])) for t in (viewmat, K, ref.camera_centres(viewmat[None])[0])]
     m2, conics, depths, radii, _ = _project_kernels.project_fwd(
         *gauss, np.zeros((means.shape[0], 1, 3), gauss[0].dtype), -1, *cams, width, height, near_plane, 1e10)
-    opac = opacities.contiguous().numpy()
+    opac = np.ascontiguousarray(_host(opacities))
     bins = _kernels.bin_gaussians(m2[0], conics[0], opac, radii[0], depths[0], width, height)
     return m2[0], conics[0], depths[0], opac, bins
 
@@ -313,7 +317,7 @@ def median_depth(
                                                      near_plane)
         out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], bins[4], width, height,
                                         means.dtype == torch.float32)
-        return torch.from_numpy(out)
+        return torch.from_numpy(out).to(means.device)
 
 
 def pixel_contributors(
@@ -339,4 +343,4 @@ def pixel_contributors(
         _, _, n_proc = _kernels.rasterize_fwd(m2, conics, feats, opac, bins[0], bins[1], bins[4], width, height, fast)
         offsets, ids = _kernels.list_contributors(m2, conics, opac, bins[0], bins[1], bins[4], width, height, n_proc,
                                                   fast)
-        return torch.from_numpy(offsets), torch.from_numpy(ids)
+        return torch.from_numpy(offsets).to(means.device), torch.from_numpy(ids).to(means.device)
