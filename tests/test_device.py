@@ -6,11 +6,11 @@ from dataclasses import replace
 
 import pytest
 import torch
+from test_trainer import TINY, write_sphere_scan
 
 from station.errors import BadInputError
 from station.ngs.dataset import load_scene
 from station.ngs.trainer import Trainer, training_device
-from test_trainer import TINY, write_sphere_scan
 
 
 @pytest.fixture(scope="module")
