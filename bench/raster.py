@@ -149,7 +149,7 @@ def breakdown(scene: dict, params: list[torch.Tensor], step_times: tuple[float, 
 
     for p in params:
         p.grad = torch.zeros_like(p)
-    optimizers = [torch.optim.Adam([p], lr=1e-3, eps=1e-15) for p in params]  # as station/ngs/trainer.py
+    optimizers = [torch.optim.Adam([p], lr=1e-3, eps=1e-15, fused=True) for p in params]  # as station/ngs/trainer.py
 
     def adam() -> None:
         for opt in optimizers:

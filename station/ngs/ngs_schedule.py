@@ -85,7 +85,7 @@ class NGSPhases:
     def _set_trainable(self, logits: torch.Tensor) -> None:
         param = torch.nn.Parameter(logits)
         self.params = {"opacities": param}
-        self.optimizers = {"opacities": torch.optim.Adam([param], lr=self.cfg.noise_lr, eps=1e-15)}
+        self.optimizers = {"opacities": torch.optim.Adam([param], lr=self.cfg.noise_lr, eps=1e-15, fused=True)}
 
     def noise(self, sh_bases: int) -> dict[str, torch.Tensor] | None:
         """Rasteriser inputs of the noise, colours as SH [M, sh_bases, 3] (DC only)."""
