@@ -210,7 +210,8 @@ class _Project(torch.autograd.Function):
         arrays, cams, width, height, sh_degree, radii, colors = ctx.state
         grads = _project_kernels.project_bwd(
             *arrays, sh_degree, cams[0], cams[1], cams[2], width, height, radii, colors,
-            *(g.contiguous().numpy() for g in (g_means2d, g_conics, g_depths, g_colors)))
+            *(g.contiguous().numpy() for g in (g_means2d, g_conics, g_depths, g_colors)),
+            ctx.needs_input_grad[4] or ctx.needs_input_grad[5])
         g_means, g_quats, g_scales, g_coeffs, g_viewmats, g_campos = (torch.from_numpy(g) for g in grads)
         # Ks, width, height, sh_degree, near, far get no gradient
         return g_means, g_quats, g_scales, g_coeffs, g_viewmats, g_campos, None, None, None, None, None, None
