@@ -246,3 +246,20 @@ def test_depth_order_is_a_stable_argsort_with_ties_and_signed_zeros():
         for dtype in (np.float32, np.float64):
             d = depths.astype(dtype)
             np.testing.assert_array_equal(_kernels.depth_order(d), np.argsort(d, kind="stable"))
+
+
+def test_gradients_are_the_same_whether_or_not_the_pose_needs_one():
+    """Without a pose gradient the projection's backward skips the pose partials; nothing else may change."""
+    scene = random_scene(300, 48, 40, cameras=2)
+    runs = []
+    for pose in (True, False):
+        leaves = {k: v.clone().requires_grad_(k in PARAMS and (pose or k != "viewmats")) for k, v in scene.items()}
+        img, alpha, _ = rasterization(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"],
+                                      leaves["colors"], leaves["viewmats"], leaves["Ks"], 48, 40, sh_degree=3,
+                                      backend="cpu")
+        weights = torch.linspace(-1, 1, img.numel()).reshape(img.shape)
+        ((img * weights).sum() + alpha.sum()).backward()
+        runs.append({k: leaves[k].grad for k in PARAMS})
+    assert runs[0]["viewmats"].abs().sum() > 0 and runs[1]["viewmats"] is None
+    for k in PARAMS[:-1]:
+        torch.testing.assert_close(runs[1][k], runs[0][k], rtol=0, atol=0)
