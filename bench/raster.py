@@ -273,8 +273,8 @@ def against(rev: str, rounds: int, out: Path) -> None:
         rows = []
         keys = ("step_ms", "step_cpu_ms", "train_step_ms", "train_step_cpu_ms")
         print("medians, ms; 'train' adds each tree's own Adam step; ratios are after / before")
-        print(f"{'gaussians':>9} {'size':>9} {'step cpu':>15} {'ratio':>6} {'step wall':>15} {'ratio':>6} "
-              f"{'train cpu':>15} {'ratio':>6} {'train wall':>15} {'ratio':>6} {'load':>5}")
+        print(f"{'gaussians':>9} {'size':>9} {'step wall':>15} {'ratio':>6} {'step cpu':>15} {'ratio':>6} "
+              f"{'train wall':>15} {'ratio':>6} {'train cpu':>15} {'ratio':>6} {'load':>5}")
         for n, size, repeats in AB_CONFIGS:
             runs = {name: [] for name in trees}
             for _ in range(rounds):
