@@ -263,3 +263,17 @@ def test_gradients_are_the_same_whether_or_not_the_pose_needs_one():
     assert runs[0]["viewmats"].abs().sum() > 0 and runs[1]["viewmats"] is None
     for k in PARAMS[:-1]:
         torch.testing.assert_close(runs[1][k], runs[0][k], rtol=0, atol=0)
+
+
+def test_gradcheck_float64_of_the_background():
+    """The background's gradient is computed only when it needs one; then it must be right."""
+    width, height = 20, 16
+    scene = random_scene(4, width, height, sh_degree=None, seed=3, dtype=torch.float64)
+    background = torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64, requires_grad=True)
+
+    def render(bg):
+        img, _, _ = rasterization(*(scene[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats",
+                                                       "Ks")), width, height, backend="cpu", backgrounds=bg)
+        return img
+
+    assert torch.autograd.gradcheck(render, (background,), eps=1e-6, atol=1e-5, rtol=1e-3)

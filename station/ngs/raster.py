@@ -230,7 +230,10 @@ class _Rasterize(torch.autograd.Function):
         img, t_final, n_proc = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], bins[4], width, height, fast)
         ctx.state = (arrays, background.detach().numpy(), bins, img, t_final, n_proc, width, height, fast)
         t_final_t = torch.from_numpy(t_final)[..., None]                                   # [H, W, 1]
-        return torch.from_numpy(img) + t_final_t * background, 1 - t_final_t
+        img_t = torch.from_numpy(img)
+        if bool(background.any()):  # a black background (the trainer's) costs no image-sized ops
+            img_t = img_t + t_final_t * background
+        return img_t, 1 - t_final_t
 
     @staticmethod
     def backward(ctx, g_img: Tensor, g_alpha: Tensor):
@@ -239,7 +242,7 @@ class _Rasterize(torch.autograd.Function):
                                        g_img.contiguous().numpy(), g_alpha[..., 0].contiguous().numpy(), fast)
         red = torch.from_numpy(_kernels.reduce_per_gaussian(slots, bins[2], bins[3]))       # [N, 6 + D]
         d = slots.shape[1] - 6
-        g_bg = (g_img * torch.from_numpy(t_final)[..., None]).sum((0, 1))                  # [D]
+        g_bg = (g_img * torch.from_numpy(t_final)[..., None]).sum((0, 1)) if ctx.needs_input_grad[6] else None
         # radii, depths (order only), width, height get no gradient
         return red[:, :2], red[:, 2:5], red[:, 5:5 + d], red[:, 5 + d], None, None, g_bg, None, None
 
