@@ -172,13 +172,13 @@ class Trainer:
         check_finite(step, {f"parameter {k}": v for k, v in self.model.params.items()})
         views = self.train_views()
         view = views[int(torch.randint(len(views), (1,), generator=self.generator, device="cpu"))]
-        if self.ngs:
-            self.ngs.step_pre(step, {k: v.detach() for k, v in self.model.activated().items()}, self.cameras)
         frozen = bool(self.ngs and self.ngs.surface_frozen(step))
         for p in self.model.params.values():
             p.requires_grad_(not frozen)
         self.optimizers["means"].param_groups[0]["lr"] = self.means_lr_at(step)
         g = self.model.activated()
+        if self.ngs:  # the same activations, detached: the infill is built from the surface's current state
+            self.ngs.step_pre(step, {k: v.detach() for k, v in g.items()}, self.cameras)
         noise = self.ngs.noise(g["colors"].shape[1]) if self.ngs else None
         surface_fg = bool(noise is not None and self.ngs.fg_on_surface(step))
         is_noise = torch.cat([torch.zeros(len(self.model), 1, device=self.device),
