@@ -235,7 +235,9 @@ def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks
         gy += -fy / z2 * gj12
         gz += fy * y / (z2 * z) * gj12
     # covc = Rw cov Rw^T: g_cov += Rw^T g_covc Rw ; gR = 2 g_covc Rw cov
-    _mm(Rw.T, g_covc, t33)
+    for i in range(3):
+        for j in range(3):
+            t33[i, j] = Rw[0, i] * g_covc[0, j] + Rw[1, i] * g_covc[1, j] + Rw[2, i] * g_covc[2, j]
     for i in range(3):
         for j in range(3):
             g_cov[i, j] += t33[i, 0] * Rw[0, j] + t33[i, 1] * Rw[1, j] + t33[i, 2] * Rw[2, j]
@@ -324,17 +326,25 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
         g_covc, gR, g_cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
         J, jc = np.empty((2, 3)), np.empty((2, 3))
         basis, bx, by, bz = np.empty(16), np.empty(16), np.empty(16), np.empty(16)
+        Rw = np.empty((3, 3))
+        # built once per chunk: a tuple of arrays, or a view such as Rws[c], costs an atomic reference count pair
+        # per use, and on arrays both threads share those atomics contend
+        upstream = (g_means2d, g_conics, g_depths, g_colors)
+        outs = (g_means, g_coeffs, g_cov, pose_part)
+        scratch = (s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz)
         for g in range(chunk * CHUNK, min(n, chunk * CHUNK + CHUNK)):
-            g_cov[:] = 0.0
+            for i in range(3):
+                for j in range(3):
+                    g_cov[i, j] = 0.0
             seen = False
             for c in range(c_n):
                 if radii[c, g] > 0:
                     seen = True
-                    Rw = Rws[c]
+                    for i in range(3):
+                        for j in range(3):
+                            Rw[i, j] = Rws[c, i, j]
                     _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width,
-                                     height, colors, (g_means2d, g_conics, g_depths, g_colors),
-                                     (g_means, g_coeffs, g_cov, pose_part), Rw,
-                                     (s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz), want_pose)
+                                     height, colors, upstream, outs, Rw, scratch, want_pose)
             if seen:
                 _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, s0, s1, gR)
     pose = pose_part.sum(axis=1)                           # [C, 15], fixed summation order
