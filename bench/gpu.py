@@ -1,5 +1,5 @@
 """The CUDA path on a GPU machine: gsplat against the numba CPU rasteriser on the benchmark scene of
-docs/cpu-rasterizer.md, then a full `station demo` timed with CUDA as torch's default device.
+docs/cpu-rasterizer.md, then a full `station demo` timed, trained on CUDA by `TrainConfig.device` "auto".
 
     ./dev bench gpu                 # or: python bench/gpu.py [--skip-demo]
 
@@ -107,18 +107,18 @@ def compare(n: int, size: int) -> dict:
     return row
 
 
-DEMO_ON_CUDA = "import torch, sys; torch.set_default_device('cuda'); from station.cli import app; sys.exit(app())"
-
-
 def time_demo() -> dict:
-    """A full `station demo` in this venv with CUDA as torch's default device: seconds and exit code."""
+    """A full `station demo` in this venv: seconds, exit code, and the device the trainer chose (its
+    `TrainConfig.device` "auto" takes CUDA when torch sees a GPU) read back from the demo's train metrics."""
     with tempfile.TemporaryDirectory(prefix="station-gpu-demo-") as out:
         started = time.monotonic()
-        run = subprocess.run([sys.executable, "-c", DEMO_ON_CUDA, "demo", "--out", out], cwd=ROOT,
+        run = subprocess.run([sys.executable, "-m", "station", "demo", "--out", out], cwd=ROOT,
                              capture_output=True, text=True)
         seconds = time.monotonic() - started
+        devices = sorted({json.loads(p.read_text())["report"].get("device", "unknown")
+                          for p in Path(out).rglob("train_metrics.json")})
     tail = (run.stdout + run.stderr).strip().splitlines()[-15:]
-    return {"seconds": round(seconds, 1), "exit_code": run.returncode, "output_tail": tail}
+    return {"seconds": round(seconds, 1), "exit_code": run.returncode, "trained_on": devices, "output_tail": tail}
 
 
 def inside(skip_demo: bool, out: Path) -> int:
@@ -138,12 +138,14 @@ def inside(skip_demo: bool, out: Path) -> int:
               f"{r['cuda_step_ms']:>8.1f} {r['agrees']}")
     demo = None if skip_demo else time_demo()
     if demo is not None:
-        print(f"station demo on CUDA: {demo['seconds']:.0f} s, exit code {demo['exit_code']}")
+        print(f"station demo: {demo['seconds']:.0f} s, exit code {demo['exit_code']}, trained on {demo['trained_on']}")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"comparisons": rows, "demo": demo, "pins": PINS,
                                "tolerances": {"image_atol": IMAGE_ATOL, "grad_rel": GRAD_REL}}, indent=2) + "\n")
     print(f"wrote {out}")
-    return 0 if all(r["agrees"] for r in rows) and (demo is None or demo["exit_code"] == 0) else 1
+    demo_ok = demo is None or (demo["exit_code"] == 0 and bool(demo["trained_on"])
+                               and all(d.startswith("cuda") for d in demo["trained_on"]))
+    return 0 if all(r["agrees"] for r in rows) and demo_ok else 1
 
 
 def main() -> int:

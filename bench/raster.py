@@ -149,7 +149,7 @@ def breakdown(scene: dict, params: list[torch.Tensor], step_times: tuple[float, 
 
     for p in params:
         p.grad = torch.zeros_like(p)
-    optimizers = [torch.optim.Adam([p], lr=1e-3, eps=1e-15) for p in params]  # as station/ngs/trainer.py
+    optimizers = [torch.optim.Adam([p], lr=1e-3, eps=1e-15, fused=True) for p in params]  # as station/ngs/trainer.py
 
     def adam() -> None:
         for opt in optimizers:
@@ -215,11 +215,25 @@ def step_peak_rss_mb(n: int, width: int, height: int) -> float:
 AB_CONFIGS = ((20_000, 256, 15), (100_000, 512, 5))
 
 
+def trainer_optimizers(params: list[torch.Tensor]) -> list[torch.optim.Optimizer]:
+    """The Adam optimisers the imported tree's trainer builds, over the bench's parameters."""
+    from types import SimpleNamespace
+
+    from station.ngs.trainer import TrainConfig, Trainer
+
+    named = dict(zip(("means", "scales", "quats", "opacities", "sh0"), params))
+    host = SimpleNamespace(cfg=TrainConfig(), scene=SimpleNamespace(scene_scale=1.0),
+                           model=SimpleNamespace(params=named))
+    return list(Trainer._make_optimizers(host).values())
+
+
 def step_only(n: int, size: int, repeats: int) -> None:
-    """Print one JSON line: median wall and CPU ms of a training step, for the tree this process imported."""
+    """Print one JSON line: median wall and CPU ms of a step (render, loss, backward) and of a training step
+    (the same plus the tree's own Adam), for the tree this process imported."""
     set_num_threads(2)
     scene = bench_scene(n, size, size)
     params = [scene[k].clone().requires_grad_(True) for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
+    optimizers = trainer_optimizers(params)
 
     def step() -> None:
         for p in params:
@@ -227,9 +241,16 @@ def step_only(n: int, size: int, repeats: int) -> None:
         img, _, _ = _render(scene, params, "cpu")
         (img - scene["target"]).abs().mean().backward()
 
+    def train_step() -> None:
+        step()
+        for opt in optimizers:
+            opt.step()
+
     wall, cpu = _timed(step, repeats)
+    train_wall, train_cpu = _timed(train_step, repeats)
     tree = str(Path(rasterization.__code__.co_filename).resolve().parents[2])
-    print(json.dumps({"step_ms": round(wall, 2), "step_cpu_ms": round(cpu, 2), "tree": tree}))
+    print(json.dumps({"step_ms": round(wall, 2), "step_cpu_ms": round(cpu, 2), "train_step_ms": round(train_wall, 2),
+                      "train_step_cpu_ms": round(train_cpu, 2), "tree": tree}))
 
 
 def against(rev: str, rounds: int, out: Path) -> None:
@@ -250,24 +271,29 @@ def against(rev: str, rounds: int, out: Path) -> None:
         for tree in trees.values():
             run(tree, 2_000, 128, 1)
         rows = []
-        print(f"{'gaussians':>9} {'size':>9} {'before cpu':>10} {'after cpu':>10} {'ratio':>6} {'before ms':>10} "
-              f"{'after ms':>9} {'ratio':>6}")
+        keys = ("step_ms", "step_cpu_ms", "train_step_ms", "train_step_cpu_ms")
+        print("medians, ms; 'train' adds each tree's own Adam step; ratios are after / before")
+        print(f"{'gaussians':>9} {'size':>9} {'step wall':>15} {'ratio':>6} {'step cpu':>15} {'ratio':>6} "
+              f"{'train wall':>15} {'ratio':>6} {'train cpu':>15} {'ratio':>6} {'load':>5}")
         for n, size, repeats in AB_CONFIGS:
             runs = {name: [] for name in trees}
             for _ in range(rounds):
                 for name, tree in trees.items():
                     runs[name].append(run(tree, n, size, repeats))
-            med = {(name, key): float(np.median([r[key] for r in runs[name]]))
-                   for name in trees for key in ("step_ms", "step_cpu_ms")}
+            med = {(name, key): float(np.median([r[key] for r in runs[name] if key in r]))
+                   for name in trees for key in keys}
+            ratio = {key: round(med["after", key] / med["before", key], 3) for key in keys}
+            load = float(np.median([r["load_1min"] for name in trees for r in runs[name]]))
             row = {"gaussians": n, "width": size, "height": size, "runs": runs,
                    "median": {f"{name}_{key}": round(v, 2) for (name, key), v in med.items()},
-                   "cpu_ratio_after_over_before": round(med["after", "step_cpu_ms"] / med["before", "step_cpu_ms"], 3),
-                   "wall_ratio_after_over_before": round(med["after", "step_ms"] / med["before", "step_ms"], 3)}
+                   "cpu_ratio_after_over_before": ratio["step_cpu_ms"],
+                   "wall_ratio_after_over_before": ratio["step_ms"],
+                   "train_cpu_ratio_after_over_before": ratio["train_step_cpu_ms"],
+                   "train_wall_ratio_after_over_before": ratio["train_step_ms"], "median_load_1min": load}
             rows.append(row)
-            print(f"{n:>9} {size:>4}x{size:<4} {med['before', 'step_cpu_ms']:>10.1f} "
-                  f"{med['after', 'step_cpu_ms']:>10.1f} {row['cpu_ratio_after_over_before']:>6.2f} "
-                  f"{med['before', 'step_ms']:>10.1f} "
-                  f"{med['after', 'step_ms']:>9.1f} {row['wall_ratio_after_over_before']:>6.2f}", flush=True)
+            print(f"{n:>9} {size:>4}x{size:<4} " + " ".join(
+                f"{med['before', key]:>7.1f}>{med['after', key]:<7.1f} {ratio[key]:>6.2f}" for key in keys)
+                + f" {load:>5.1f}", flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"benchmark": "raster", "before": rev, "after": "working tree", "rounds": rounds, "threads": 2,
                                "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},

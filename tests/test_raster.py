@@ -246,3 +246,34 @@ def test_depth_order_is_a_stable_argsort_with_ties_and_signed_zeros():
         for dtype in (np.float32, np.float64):
             d = depths.astype(dtype)
             np.testing.assert_array_equal(_kernels.depth_order(d), np.argsort(d, kind="stable"))
+
+
+def test_gradients_are_the_same_whether_or_not_the_pose_needs_one():
+    """Without a pose gradient the projection's backward skips the pose partials; nothing else may change."""
+    scene = random_scene(300, 48, 40, cameras=2)
+    runs = []
+    for pose in (True, False):
+        leaves = {k: v.clone().requires_grad_(k in PARAMS and (pose or k != "viewmats")) for k, v in scene.items()}
+        img, alpha, _ = rasterization(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"],
+                                      leaves["colors"], leaves["viewmats"], leaves["Ks"], 48, 40, sh_degree=3,
+                                      backend="cpu")
+        weights = torch.linspace(-1, 1, img.numel()).reshape(img.shape)
+        ((img * weights).sum() + alpha.sum()).backward()
+        runs.append({k: leaves[k].grad for k in PARAMS})
+    assert runs[0]["viewmats"].abs().sum() > 0 and runs[1]["viewmats"] is None
+    for k in PARAMS[:-1]:
+        torch.testing.assert_close(runs[1][k], runs[0][k], rtol=0, atol=0)
+
+
+def test_gradcheck_float64_of_the_background():
+    """The background's gradient is computed only when it needs one; then it must be right."""
+    width, height = 20, 16
+    scene = random_scene(4, width, height, sh_degree=None, seed=3, dtype=torch.float64)
+    background = torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64, requires_grad=True)
+
+    def render(bg):
+        img, _, _ = rasterization(*(scene[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmats",
+                                                       "Ks")), width, height, backend="cpu", backgrounds=bg)
+        return img
+
+    assert torch.autograd.gradcheck(render, (background,), eps=1e-6, atol=1e-5, rtol=1e-3)

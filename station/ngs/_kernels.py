@@ -53,7 +53,8 @@ def _quad(a, b, c, dx, dy):
 def _tile_hit(u, v, a, b, c, sig_max, tx, ty):
     """Whether some pixel centre of tile (tx, ty) can see the Gaussian at alpha >= 1/255: the minimum of its
     quadratic form over the tile's pixel-centre rectangle is <= sig_max. Exact culling (never drops a pixel
-    that would composite it), about 2-3x fewer intersections than the 3-sigma rectangle alone."""
+    that would composite it), about 2-3x fewer intersections than the 3-sigma rectangle alone. Callers first
+    shrink the rectangle to the ellipse's bounding box (`_hit_rect`), where the tiles that fail are few."""
     dxl = u - (tx * TILE + TILE - 0.5)
     dxh = u - (tx * TILE + 0.5)
     dyl = v - (ty * TILE + TILE - 0.5)
@@ -68,6 +69,23 @@ def _tile_hit(u, v, a, b, c, sig_max, tx, ty):
         dx = min(max(-b * dy / a, dxl), dxh)
         best = min(best, _quad(a, b, c, dx, dy))
     return best <= sig_max
+
+
+@njit(cache=True)
+def _hit_rect(u, v, r, a, b, c, sig_max, tw, th):
+    """gsplat's tile rectangle of radius r, cut to the bounding box of the ellipse sigma <= sig_max (padded):
+    tiles outside it fail `_tile_hit` anyway, so the hits, and their order, are the same."""
+    x0, y0, x1, y1 = _tile_rect(u, v, r, tw, th)
+    det = a * c - b * b
+    if a <= 0.0 or c <= 0.0 or det <= 0.0:
+        return x0, y0, x1, y1
+    ex = math.sqrt(2.0 * sig_max * c / det) * 1.01 + 0.05
+    ey = math.sqrt(2.0 * sig_max * a / det) * 1.01 + 0.05
+    bx0 = min(max(int(math.floor((u - ex - 0.5) / TILE)), 0), tw)
+    bx1 = min(max(int(math.floor((u + ex - 0.5) / TILE)) + 1, 0), tw)
+    by0 = min(max(int(math.floor((v - ey - 0.5) / TILE)), 0), th)
+    by1 = min(max(int(math.floor((v + ey - 0.5) / TILE)) + 1, 0), th)
+    return max(x0, bx0), max(y0, by0), max(min(x1, bx1), max(x0, bx0)), max(min(y1, by1), max(y0, by0))
 
 
 @njit(cache=True)
@@ -103,6 +121,7 @@ def _row_span(my, ext, y0):
 
 
 U8, U63, RADIX_MASK = np.uint64(8), np.uint64(63), np.uint64(255)
+TILE_U, ONE_U = np.uint64(TILE), np.uint64(1)
 
 
 @njit(cache=True)
@@ -146,15 +165,27 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     th = (height + TILE - 1) // TILE
     counts = np.zeros(n, np.int64)
     extent_y = np.empty(n, np.float64)
+    sig = np.empty(n, np.float64)
+    hits = np.zeros(n, np.uint64)  # the first pass's hits as bits of the rectangle (row-major) when it has <= 64 tiles
     for g in prange(n):
         sig_max = _sig_max(opacities[g])
+        sig[g] = sig_max
         extent_y[g] = _y_extent(float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), sig_max)
         if radii[g] > 0 and sig_max >= 0.0:
             u, v = means2d[g, 0], means2d[g, 1]
-            x0, y0, x1, y1 = _tile_rect(u, v, float(radii[g]), tw, th)
+            x0, y0, x1, y1 = _hit_rect(u, v, float(radii[g]), float(conics[g, 0]), float(conics[g, 1]),
+                                       float(conics[g, 2]), sig[g], tw, th)
+            small = (x1 - x0) * (y1 - y0) <= 64
+            bit = np.uint64(0)
+            mask = np.uint64(0)
             for ty in range(y0, y1):
                 for tx in range(x0, x1):
-                    counts[g] += _tile_hit(u, v, conics[g, 0], conics[g, 1], conics[g, 2], sig_max, tx, ty)
+                    if _tile_hit(u, v, conics[g, 0], conics[g, 1], conics[g, 2], sig_max, tx, ty):
+                        counts[g] += 1
+                        if small:
+                            mask |= np.uint64(1) << bit
+                    bit += np.uint64(1)
+            hits[g] = mask
     gauss_offsets = np.zeros(n + 1, np.int64)
     gauss_offsets[1:] = np.cumsum(counts)
     m = gauss_offsets[n]
@@ -163,15 +194,19 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     isect_tile = np.empty(m, np.int64)
     for g in prange(n):
         if counts[g] > 0:
-            sig_max = _sig_max(opacities[g])
             u, v = means2d[g, 0], means2d[g, 1]
-            x0, y0, x1, y1 = _tile_rect(u, v, float(radii[g]), tw, th)
+            x0, y0, x1, y1 = _hit_rect(u, v, float(radii[g]), float(conics[g, 0]), float(conics[g, 1]),
+                                       float(conics[g, 2]), sig[g], tw, th)
+            small = (x1 - x0) * (y1 - y0) <= 64
             j = gauss_offsets[g]
+            bit = np.uint64(0)
             for ty in range(y0, y1):
                 for tx in range(x0, x1):
-                    if _tile_hit(u, v, conics[g, 0], conics[g, 1], conics[g, 2], sig_max, tx, ty):
+                    if ((hits[g] >> bit) & np.uint64(1)) != np.uint64(0) if small else _tile_hit(
+                            u, v, conics[g, 0], conics[g, 1], conics[g, 2], sig[g], tx, ty):
                         isect_tile[j] = ty * tw + tx
                         j += 1
+                    bit += np.uint64(1)
     for j in range(m):
         tile_counts[isect_tile[j] + 1] += 1
     tile_offsets = np.cumsum(tile_counts)
@@ -233,6 +268,21 @@ def _tile_pixels(t, tw, width, height, dtype):
     return px, py, inside
 
 
+@njit(cache=True)
+def _live_rows(live):
+    """Tile-local pixels [lo, hi) of the first to the last row holding a live pixel (lo >= hi: none). Rows
+    outside it are finished, so compositing skips them exactly."""
+    r0, r1 = TILE, 0
+    for r in range(TILE):
+        s = ZERO
+        for q in range(TILE):
+            s += live[r * TILE + q]
+        if s > ZERO:
+            r0 = min(r0, r)
+            r1 = r + 1
+    return np.uint64(r0 * TILE), np.uint64(max(r1, r0) * TILE)
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, extent_y, width, height, fast):
     """Composite front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W] int32
@@ -256,13 +306,13 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
-        n_live = 0
         for p in range(TILE_PIX):
             live[p] = 1.0 if inside[p] else 0.0
-            n_live += inside[p]
+        lo, hi = np.uint64(0), np.uint64(TILE_PIX)  # the tile's rows that still hold a live pixel
         for k in range(end - start):
             g = isect_gid[start + k]
             p0, p1 = _row_span(means2d[g, 1], extent_y[g], y0)
+            p0, p1 = max(p0, lo), min(p1, hi)
             _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
                     px, py, alpha, expo, fast, ibuf, p0, p1)
             for p in range(p0, p1):
@@ -280,10 +330,8 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
                 for p in range(p0, p1):
                     acc[d, p] += c * w[p]
             if k % 8 == 7:
-                s = 0.0
-                for p in range(TILE_PIX):
-                    s += live[p]
-                if s == 0.0:
+                lo, hi = _live_rows(live)
+                if lo >= hi:
                     break
         for p in range(TILE_PIX):
             if inside[p]:
@@ -373,6 +421,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         gda = np.empty(TILE_PIX, dt)
         inv1a = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
+        row_limit = np.zeros(TILE, np.int32)  # per row, the longest any of its pixels composites
         kmax = 0
         for p in range(TILE_PIX):
             if inside[p]:
@@ -381,6 +430,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 tn[p] = t_final[y, x]
                 limit[p] = n_proc[y, x]
                 kmax = max(kmax, n_proc[y, x])
+                row_limit[p // TILE] = max(row_limit[p // TILE], n_proc[y, x])
                 ga[p] = g_alpha[y, x]
                 for d in range(d_ch):
                     go[d, p] = g_feats[y, x, d]
@@ -392,6 +442,10 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
             ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
             op = opacities[g]
             p0, p1 = _row_span(my, extent_y[g], y0)
+            while p0 < p1 and row_limit[p0 // TILE_U] <= k:  # rows done before this Gaussian add nothing
+                p0 += TILE_U
+            while p1 > p0 and row_limit[(p1 - ONE_U) // TILE_U] <= k:
+                p1 -= TILE_U
             _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, p0, p1)
             for p in range(p0, p1):
                 a = alpha[p]

@@ -187,9 +187,9 @@ def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, colors,
-                     upstream, outs, Rw, scratch):
+                     upstream, outs, Rw, scratch, want_pose):
     """Backward of `_project_one` for (c, g): adds into outs = (g_means, g_coeffs, g_cov (world covariance),
-    pose_part). upstream = (g_means2d, g_conics, g_depths, g_colors). scratch holds [3, 3] buffers but for
+    pose_part; written only if want_pose). upstream = (g_means2d, g_conics, g_depths, g_colors). scratch holds [3, 3] buffers but for
     J, jc [2, 3] and the SH buffers [16]. Tuples keep the call under CPython's 30-argument limit, past
     which numba cannot inline it (and an outlined call costs a refcount pair per array argument)."""
     g_means2d, g_conics, g_depths, g_colors = upstream
@@ -235,18 +235,23 @@ def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks
         gy += -fy / z2 * gj12
         gz += fy * y / (z2 * z) * gj12
     # covc = Rw cov Rw^T: g_cov += Rw^T g_covc Rw ; gR = 2 g_covc Rw cov
-    _mm(Rw.T, g_covc, t33)
+    for i in range(3):
+        for j in range(3):
+            t33[i, j] = Rw[0, i] * g_covc[0, j] + Rw[1, i] * g_covc[1, j] + Rw[2, i] * g_covc[2, j]
     for i in range(3):
         for j in range(3):
             g_cov[i, j] += t33[i, 0] * Rw[0, j] + t33[i, 1] * Rw[1, j] + t33[i, 2] * Rw[2, j]
-    _mm(g_covc, Rw, t33)
-    _mm(t33, cov, gR)
     g_mc = (gx, gy, gz)
     for i in range(3):
         for j in range(3):
-            pose_part[c, g, 3 * i + j] = 2 * gR[i, j] + g_mc[i] * means[g, j]
             g_means[g, j] += Rw[i, j] * g_mc[i]
-        pose_part[c, g, 9 + i] = g_mc[i]
+    if want_pose:
+        _mm(g_covc, Rw, t33)
+        _mm(t33, cov, gR)
+        for i in range(3):
+            for j in range(3):
+                pose_part[c, g, 3 * i + j] = 2 * gR[i, j] + g_mc[i] * means[g, j]
+            pose_part[c, g, 9 + i] = g_mc[i]
     if sh_degree >= 0:
         d0, d1, d2 = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
         nd = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
@@ -267,7 +272,8 @@ def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks
         gm = ((gd0 - u0 * dot) / nd, (gd1 - u1 * dot) / nd, (gd2 - u2 * dot) / nd)
         for i in range(3):
             g_means[g, i] += gm[i]
-            pose_part[c, g, 12 + i] = -gm[i]
+            if want_pose:
+                pose_part[c, g, 12 + i] = -gm[i]
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=True)
@@ -302,15 +308,16 @@ def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
 
 @njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii, colors,
-                g_means2d, g_conics, g_depths, g_colors):
-    """-> g_means [N,3], g_quats [N,4], g_scales [N,3], g_coeffs [N,K,3], g_viewmats [C,4,4], g_campos [C,3]."""
+                g_means2d, g_conics, g_depths, g_colors, want_pose=True):
+    """-> g_means [N,3], g_quats [N,4], g_scales [N,3], g_coeffs [N,K,3], g_viewmats [C,4,4], g_campos [C,3]
+    (the last two zero unless want_pose: training poses are constants, so their partials are skipped)."""
     c_n, n = viewmats.shape[0], means.shape[0]
     dt = means.dtype
     g_means = np.zeros((n, 3), dt)
     g_quats = np.zeros((n, 4), dt)
     g_scales = np.zeros((n, 3), dt)
     g_coeffs = np.zeros(coeffs.shape, dt)
-    pose_part = np.zeros((c_n, n, 15))  # per (camera, Gaussian): d Rw (9), d t (3), d campos (3)
+    pose_part = np.zeros((c_n, n if want_pose else 0, 15))  # per (camera, Gaussian): d Rw (9), d t (3), d campos (3)
     Rws = np.empty((c_n, 3, 3))
     for c in range(c_n):
         Rws[c] = viewmats[c, :3, :3]
@@ -319,17 +326,25 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
         g_covc, gR, g_cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
         J, jc = np.empty((2, 3)), np.empty((2, 3))
         basis, bx, by, bz = np.empty(16), np.empty(16), np.empty(16), np.empty(16)
+        Rw = np.empty((3, 3))
+        # built once per chunk: a tuple of arrays, or a view such as Rws[c], costs an atomic reference count pair
+        # per use, and on arrays both threads share those atomics contend
+        upstream = (g_means2d, g_conics, g_depths, g_colors)
+        outs = (g_means, g_coeffs, g_cov, pose_part)
+        scratch = (s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz)
         for g in range(chunk * CHUNK, min(n, chunk * CHUNK + CHUNK)):
-            g_cov[:] = 0.0
+            for i in range(3):
+                for j in range(3):
+                    g_cov[i, j] = 0.0
             seen = False
             for c in range(c_n):
                 if radii[c, g] > 0:
                     seen = True
-                    Rw = Rws[c]
+                    for i in range(3):
+                        for j in range(3):
+                            Rw[i, j] = Rws[c, i, j]
                     _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width,
-                                     height, colors, (g_means2d, g_conics, g_depths, g_colors),
-                                     (g_means, g_coeffs, g_cov, pose_part), Rw,
-                                     (s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz))
+                                     height, colors, upstream, outs, Rw, scratch, want_pose)
             if seen:
                 _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, s0, s1, gR)
     pose = pose_part.sum(axis=1)                           # [C, 15], fixed summation order

@@ -49,6 +49,10 @@ class View:
     def height(self) -> int:
         return self.image.shape[0]
 
+    def to(self, device: torch.device | str) -> "View":
+        return View(self.name, self.image.to(device), None if self.mask is None else self.mask.to(device),
+                    self.viewmat.to(device), self.K.to(device))
+
 
 @dataclass
 class SceneData:
@@ -57,6 +61,11 @@ class SceneData:
     points: np.ndarray  # [P, 3] sparse cloud
     point_colors: np.ndarray | None  # [P, 3] in [0, 1]
     scene_scale: float
+
+    def to(self, device: torch.device | str) -> "SceneData":
+        """The views' tensors on `device`; the cloud stays numpy (it only seeds the model)."""
+        return SceneData([v.to(device) for v in self.train], [v.to(device) for v in self.test], self.points,
+                         self.point_colors, self.scene_scale)
 
 
 def split_indices(count: int, every: int = 8) -> tuple[list[int], list[int]]:
@@ -108,10 +117,12 @@ def downscaled_view(view: View, factor: int) -> View:
     """The same view `factor` times coarser (load_scene's downscale and the trainer's coarse levels)."""
     if factor == 1:
         return view
-    image, mask = _downscaled(view.image.numpy(), None if view.mask is None else view.mask.numpy(), factor)
+    image, mask = _downscaled(view.image.cpu().numpy(), None if view.mask is None else view.mask.cpu().numpy(), factor)
     K = view.K.clone()
     K[:2] /= factor
-    return View(view.name, torch.from_numpy(image), None if mask is None else torch.from_numpy(mask), view.viewmat, K)
+    device = view.image.device
+    return View(view.name, torch.from_numpy(image).to(device),
+                None if mask is None else torch.from_numpy(mask).to(device), view.viewmat, K)
 
 
 def read_points(path: Path, source: Path) -> tuple[np.ndarray, np.ndarray | None]:

@@ -35,7 +35,8 @@ class Gaussians:
         }
 
     @staticmethod
-    def from_points(points: np.ndarray, colors: np.ndarray | None, sh_degree: int, seed: int = 0) -> "Gaussians":
+    def from_points(points: np.ndarray, colors: np.ndarray | None, sh_degree: int, seed: int = 0,
+                    device: torch.device | str = "cpu") -> "Gaussians":
         """3DGS initialisation: opacity 0.1, scale = mean distance to the 3 nearest neighbours."""
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
@@ -46,16 +47,16 @@ class Gaussians:
         if colors is None:
             generator = np.random.default_rng(seed)
             colors = generator.random((n, 3))
-        rgb = torch.as_tensor(np.asarray(colors, dtype=np.float32))  # [N, 3] in [0, 1]
-        quats = torch.zeros(n, 4)
+        rgb = torch.as_tensor(np.asarray(colors, dtype=np.float32), device=device)  # [N, 3] in [0, 1]
+        quats = torch.zeros(n, 4, device=device)
         quats[:, 0] = 1.0
         params = {
-            "means": torch.as_tensor(points, dtype=torch.float32),
-            "scales": torch.log(torch.as_tensor(mean_dist, dtype=torch.float32))[:, None].repeat(1, 3),
+            "means": torch.as_tensor(points, dtype=torch.float32, device=device),
+            "scales": torch.log(torch.as_tensor(mean_dist, dtype=torch.float32, device=device))[:, None].repeat(1, 3),
             "quats": quats,
-            "opacities": torch.full((n,), math.log(0.1 / 0.9)),
+            "opacities": torch.full((n,), math.log(0.1 / 0.9), device=device),
             "sh0": rgb_to_sh(rgb)[:, None, :],
-            "shN": torch.zeros(n, num_sh_bases(sh_degree) - 1, 3),
+            "shN": torch.zeros(n, num_sh_bases(sh_degree) - 1, 3, device=device),
         }
         return Gaussians(params)
 
@@ -76,6 +77,10 @@ class Gaussians:
             "opacities": torch.sigmoid(p["opacities"]),  # [N]
             "colors": torch.cat([p["sh0"], p["shN"]], dim=1),  # [N, K, 3]
         }
+
+    def to(self, device: torch.device | str) -> "Gaussians":
+        """The same parameters as new leaves on `device` (the trainer's device option)."""
+        return Gaussians({name: value.detach().to(device) for name, value in self.params.items()})
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         return {name: value.detach().clone() for name, value in self.params.items()}

@@ -47,10 +47,10 @@ class Infill:
 
     def gaussians(self, opacity: float | torch.Tensor) -> dict[str, torch.Tensor]:
         """Rasteriser inputs with identity rotation; opacity a scalar or [M]."""
-        m = len(self)
-        quats = torch.zeros(m, 4)
+        m, device = len(self), self.means.device
+        quats = torch.zeros(m, 4, device=device)
         quats[:, 0] = 1
-        opacities = torch.as_tensor(opacity, dtype=torch.float32).expand(m).clone()
+        opacities = torch.as_tensor(opacity, dtype=torch.float32, device=device).expand(m).clone()
         return {"means": self.means, "quats": quats, "scales": self.scales[:, None].repeat(1, 3), "opacities": opacities}
 
     def state_dict(self) -> dict[str, torch.Tensor]:
@@ -63,6 +63,9 @@ class Infill:
     def select(self, keep: torch.Tensor) -> "Infill":
         return Infill(self.means[keep], self.scales[keep], self.levels[keep])
 
+    def to(self, device: torch.device | str) -> "Infill":
+        return Infill(self.means.to(device), self.scales.to(device), self.levels.to(device))
+
 
 @dataclass
 class Camera:
@@ -72,9 +75,9 @@ class Camera:
     height: int
 
 
-def random_rgbcmy(count: int, generator: torch.Generator) -> torch.Tensor:
-    """[count, 3] colours drawn from {R, G, B, C, M, Y}."""
-    return RGBCMY[torch.randint(0, 6, (count,), generator=generator)]
+def random_rgbcmy(count: int, generator: torch.Generator, device: torch.device | str = "cpu") -> torch.Tensor:
+    """[count, 3] colours drawn from {R, G, B, C, M, Y}, on `device` (drawn with the generator on its own)."""
+    return RGBCMY[torch.randint(0, 6, (count,), generator=generator, device=generator.device).cpu()].to(device)
 
 
 def core_points(points: np.ndarray, tail: float = 0.5, margin: float = 0.1) -> np.ndarray:
@@ -134,7 +137,7 @@ def depth_prune_mask(surface: dict[str, torch.Tensor], noise: dict[str, torch.Te
     """[M] bool: noise some view sees before the first surface Gaussian, or with no surface."""
     n = surface["means"].shape[0]
     m = noise["means"].shape[0]
-    marked = torch.zeros(m, dtype=torch.bool)
+    marked = torch.zeros(m, dtype=torch.bool, device=surface["means"].device)
     if m == 0:
         return marked
     joined = {key: torch.cat([surface[key].detach(), noise[key]]) for key in ("means", "quats", "scales", "opacities")}
@@ -142,11 +145,12 @@ def depth_prune_mask(surface: dict[str, torch.Tensor], noise: dict[str, torch.Te
         offsets, ids = pixel_contributors(
             joined["means"], joined["quats"], joined["scales"], joined["opacities"], cam.viewmat, cam.K, cam.width, cam.height
         )  # [P+1], [E]
+        offsets, ids = offsets.to(marked.device), ids.to(marked.device)
         counts = offsets[1:] - offsets[:-1]  # [P]
-        pixel = torch.repeat_interleave(torch.arange(len(counts)), counts)  # [E]
-        rank = torch.arange(len(ids)) - offsets[pixel]  # position in the pixel's front-to-back list
+        pixel = torch.repeat_interleave(torch.arange(len(counts), device=marked.device), counts)  # [E]
+        rank = torch.arange(len(ids), device=marked.device) - offsets[pixel]  # position in the pixel's list
         is_surface = ids < n
-        first_surface = torch.full((len(counts),), len(ids) + 1, dtype=torch.long)
+        first_surface = torch.full((len(counts),), len(ids) + 1, dtype=torch.long, device=marked.device)
         first_surface.scatter_reduce_(0, pixel[is_surface], rank[is_surface], reduce="amin")
         in_front = ~is_surface & (rank < first_surface[pixel])
         marked[ids[in_front] - n] = True
@@ -160,7 +164,8 @@ def build_infill(surface: dict[str, torch.Tensor], cameras: list[Camera], cfg: I
     for coarse, fine in zip(cfg.levels, cfg.levels[1:]):
         if fine % coarse:
             raise BadInputError(f"infill level {fine} is not a multiple of {coarse}: levels must nest")
-    points = core_points(surface["means"].detach().double().numpy())
+    device = surface["means"].device
+    points = core_points(surface["means"].detach().double().cpu().numpy())
     planes = hull_equations(points)
     lo, hi = points.min(axis=0), points.max(axis=0)
     pad = cfg.pad * (hi - lo)
@@ -182,20 +187,20 @@ def build_infill(surface: dict[str, torch.Tensor], cameras: list[Camera], cfg: I
         cells = candidate_cells(covered, origin, h, planes)  # [K, 3]
         centres = origin + (cells + 0.5) * h
         level = Infill(
-            torch.as_tensor(centres, dtype=torch.float32),
-            torch.full((len(cells),), 0.5 * h, dtype=torch.float32),
-            torch.full((len(cells),), res, dtype=torch.long),
+            torch.as_tensor(centres, dtype=torch.float32, device=device),
+            torch.full((len(cells),), 0.5 * h, dtype=torch.float32, device=device),
+            torch.full((len(cells),), res, dtype=torch.long, device=device),
         )
         if cfg.depth_prune and len(level):
             opacity = cfg.first_opacity if index == 0 else cfg.finer_opacity
             keep = ~depth_prune_mask(surface, level.gaussians(opacity), small)
-            level, cells = level.select(keep), cells[keep.numpy()]
+            level, cells = level.select(keep), cells[keep.cpu().numpy()]
         grid = covered.copy()
         grid[tuple(cells.T)] = True
         if cfg.erosion and iters > 0 and len(level):  # scipy reads iterations=0 as "until stable"
             eroded = binary_erosion(grid, structure=np.ones((3, 3, 3), bool), iterations=iters, border_value=0)
             keep_np = eroded[tuple(cells.T)]
-            level, cells = level.select(torch.from_numpy(keep_np)), cells[keep_np]
+            level, cells = level.select(torch.from_numpy(keep_np).to(device)), cells[keep_np]
             grid = covered.copy()
             grid[tuple(cells.T)] = True
         occupied = grid

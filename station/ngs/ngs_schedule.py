@@ -42,8 +42,9 @@ class NGSConfig:
 class NGSPhases:
     """Owns the infill and its optimiser; the trainer asks it what is frozen and what to render."""
 
-    def __init__(self, cfg: NGSConfig, total_steps: int, seed: int = 0):
+    def __init__(self, cfg: NGSConfig, total_steps: int, seed: int = 0, device: torch.device | str = "cpu"):
         self.cfg = cfg
+        self.device = torch.device(device)  # the infill follows the surface it is built from; colours too
         self.total_steps = total_steps
         self.build_step = max(1, round(cfg.build_at * total_steps))
         self.freeze_step = max(self.build_step + 1, round(cfg.freeze_at * total_steps))
@@ -72,28 +73,28 @@ class NGSPhases:
         if step == self.build_step and self.infill is None:
             self.infill = build_infill(surface, cameras, self.cfg.infill)
             logit = math.log(self.cfg.noise_start_opacity / (1 - self.cfg.noise_start_opacity))
-            self._set_trainable(torch.full((len(self.infill),), logit))
-            self.colors = random_rgbcmy(len(self.infill), self.generator)
+            self._set_trainable(torch.full((len(self.infill),), logit, device=self.device))
+            self.colors = random_rgbcmy(len(self.infill), self.generator, self.device)
             self.history.append({"step": step, "event": "build", "num_infill": len(self.infill)})
         if step == self.freeze_step and self.params:
             self.params, self.optimizers = {}, {}
             self.history.append({"step": step, "event": "freeze", "num_infill": len(self.infill)})
         if self.infill is not None and self.cfg.recolour and step > self.build_step:
-            self.colors = random_rgbcmy(len(self.infill), self.generator)
+            self.colors = random_rgbcmy(len(self.infill), self.generator, self.device)
 
     def _set_trainable(self, logits: torch.Tensor) -> None:
         param = torch.nn.Parameter(logits)
         self.params = {"opacities": param}
-        self.optimizers = {"opacities": torch.optim.Adam([param], lr=self.cfg.noise_lr, eps=1e-15)}
+        self.optimizers = {"opacities": torch.optim.Adam([param], lr=self.cfg.noise_lr, eps=1e-15, fused=True)}
 
     def noise(self, sh_bases: int) -> dict[str, torch.Tensor] | None:
         """Rasteriser inputs of the noise, colours as SH [M, sh_bases, 3] (DC only)."""
         if self.infill is None:
             return None
-        opacity = torch.sigmoid(self.params["opacities"]) if self.params else torch.ones(len(self.infill))
+        opacity = torch.sigmoid(self.params["opacities"]) if self.params else torch.ones(len(self.infill), device=self.device)
         out = self.infill.gaussians(1.0)
         out["opacities"] = opacity
-        sh = torch.zeros(len(self.infill), sh_bases, 3)
+        sh = torch.zeros(len(self.infill), sh_bases, 3, device=self.device)
         sh[:, 0] = rgb_to_sh(self.colors)
         out["colors"] = sh
         return out
@@ -123,11 +124,11 @@ class NGSPhases:
         }
 
     def load_state_dict(self, data: dict) -> None:
-        self.infill = None if data["infill"] is None else Infill.from_state_dict(data["infill"])
+        self.infill = None if data["infill"] is None else Infill.from_state_dict(data["infill"]).to(self.device)
         self.params, self.optimizers = {}, {}
         if data["logits"] is not None:
-            self._set_trainable(data["logits"])
+            self._set_trainable(data["logits"].to(self.device))
             self.optimizers["opacities"].load_state_dict(data["optimizer"])
-        self.colors = data["colors"]
+        self.colors = None if data["colors"] is None else data["colors"].to(self.device)
         self.generator.set_state(data["generator"])
         self.history = list(data["history"])

@@ -2,7 +2,9 @@
 
 Backends share gsplat's conventions (see `raster_reference`): "torch" is the dense plain-torch reference,
 "cpu" the tile-parallel numba kernels, "gsplat" the CUDA library (imported lazily; untested here, as no
-GPU is available). "auto" picks gsplat for CUDA tensors when it is installed, else the numba kernels.
+GPU is available). "auto" picks gsplat for CUDA tensors when it is installed (else the reference there), the
+numba kernels for CPU tensors; the forward-only per-pixel queries run the numba kernels on host copies on
+every device and return their results on the input's device.
 """
 
 from __future__ import annotations
@@ -208,7 +210,8 @@ class _Project(torch.autograd.Function):
         arrays, cams, width, height, sh_degree, radii, colors = ctx.state
         grads = _project_kernels.project_bwd(
             *arrays, sh_degree, cams[0], cams[1], cams[2], width, height, radii, colors,
-            *(g.contiguous().numpy() for g in (g_means2d, g_conics, g_depths, g_colors)))
+            *(g.contiguous().numpy() for g in (g_means2d, g_conics, g_depths, g_colors)),
+            ctx.needs_input_grad[4] or ctx.needs_input_grad[5])
         g_means, g_quats, g_scales, g_coeffs, g_viewmats, g_campos = (torch.from_numpy(g) for g in grads)
         # Ks, width, height, sh_degree, near, far get no gradient
         return g_means, g_quats, g_scales, g_coeffs, g_viewmats, g_campos, None, None, None, None, None, None
@@ -227,7 +230,10 @@ class _Rasterize(torch.autograd.Function):
         img, t_final, n_proc = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], bins[4], width, height, fast)
         ctx.state = (arrays, background.detach().numpy(), bins, img, t_final, n_proc, width, height, fast)
         t_final_t = torch.from_numpy(t_final)[..., None]                                   # [H, W, 1]
-        return torch.from_numpy(img) + t_final_t * background, 1 - t_final_t
+        img_t = torch.from_numpy(img)
+        if bool(background.any()):  # a black background (the trainer's) costs no image-sized ops
+            img_t = img_t + t_final_t * background
+        return img_t, 1 - t_final_t
 
     @staticmethod
     def backward(ctx, g_img: Tensor, g_alpha: Tensor):
@@ -236,7 +242,7 @@ class _Rasterize(torch.autograd.Function):
                                        g_img.contiguous().numpy(), g_alpha[..., 0].contiguous().numpy(), fast)
         red = torch.from_numpy(_kernels.reduce_per_gaussian(slots, bins[2], bins[3]))       # [N, 6 + D]
         d = slots.shape[1] - 6
-        g_bg = (g_img * torch.from_numpy(t_final)[..., None]).sum((0, 1))                  # [D]
+        g_bg = (g_img * torch.from_numpy(t_final)[..., None]).sum((0, 1)) if ctx.needs_input_grad[6] else None
         # radii, depths (order only), width, height get no gradient
         return red[:, :2], red[:, 2:5], red[:, 5:5 + d], red[:, 5 + d], None, None, g_bg, None, None
 
@@ -276,17 +282,19 @@ def _one_camera(caller: str, means: Tensor, quats: Tensor, scales: Tensor, opaci
         raise BadInputError(f"{caller}: K must be a [3, 3] tensor")
     rgb = means.new_zeros(means.shape) if torch.is_tensor(means) and means.dim() == 2 else means
     _validate(means, quats, scales, opacities, rgb, viewmat[None], K[None], width, height, None, None)
+    if backend == "auto":  # forward-only queries: the numba kernels on host copies, on any device
+        return "cpu"
     return _resolve_backend(backend, means.device)
 
 
 def _cpu_binned(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
                 width: int, height: int, near_plane: float) -> tuple[np.ndarray, ...]:
     """Project and bin for one camera with the numba kernels -> means2d, conics, depths, opacities, bins."""
-    gauss = [t.contiguous().numpy() for t in (means, quats, scales)]
-    cams = [t[None].contiguous().numpy() for t in (viewmat, K, ref.camera_centres(viewmat[None])[0])]
+    gauss = [np.ascontiguousarray(_host(t)) for t in (means, quats, scales)]
+    cams = [np.ascontiguousarray(_host(t[None])) for t in (viewmat, K, ref.camera_centres(viewmat[None])[0])]
     m2, conics, depths, radii, _ = _project_kernels.project_fwd(
         *gauss, np.zeros((means.shape[0], 1, 3), gauss[0].dtype), -1, *cams, width, height, near_plane, 1e10)
-    opac = opacities.contiguous().numpy()
+    opac = np.ascontiguousarray(_host(opacities))
     bins = _kernels.bin_gaussians(m2[0], conics[0], opac, radii[0], depths[0], width, height)
     return m2[0], conics[0], depths[0], opac, bins
 
@@ -313,7 +321,7 @@ def median_depth(
                                                      near_plane)
         out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], bins[4], width, height,
                                         means.dtype == torch.float32)
-        return torch.from_numpy(out)
+        return torch.from_numpy(out).to(means.device)
 
 
 def pixel_contributors(
@@ -339,4 +347,4 @@ def pixel_contributors(
         _, _, n_proc = _kernels.rasterize_fwd(m2, conics, feats, opac, bins[0], bins[1], bins[4], width, height, fast)
         offsets, ids = _kernels.list_contributors(m2, conics, opac, bins[0], bins[1], bins[4], width, height, n_proc,
                                                   fast)
-        return torch.from_numpy(offsets), torch.from_numpy(ids)
+        return torch.from_numpy(offsets).to(means.device), torch.from_numpy(ids).to(means.device)

@@ -116,7 +116,8 @@ def _dense_weights(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: T
     order = torch.sort(depths.detach(), stable=True).indices                 # [N]
     m2, cn, op, rad = means2d[order], conics[order], opacities[order], radii[order]
     rect = tile_rects(m2, rad, width, height)                               # [N, 4]
-    ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    ys, xs = torch.meshgrid(torch.arange(height, device=means2d.device), torch.arange(width, device=means2d.device),
+                            indexing="ij")
     px = xs.reshape(-1, 1).to(means2d.dtype) + 0.5                          # [P, 1]
     py = ys.reshape(-1, 1).to(means2d.dtype) + 0.5
     ptx, pty = xs.reshape(-1, 1) // TILE, ys.reshape(-1, 1) // TILE
@@ -150,7 +151,7 @@ def median_depth(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Ten
     with torch.no_grad():
         order, w, _ = _dense_weights(means2d, conics, opacities, depths, radii, width, height)
         if w.shape[1] == 0:
-            return torch.full((height, width), math.inf, dtype=means2d.dtype)
+            return torch.full((height, width), math.inf, dtype=means2d.dtype, device=means2d.device)
         crossed = torch.cumsum(w, dim=-1) >= 0.5                              # [P, N]: 1 - T_after >= 0.5
         first = torch.argmax(crossed.to(torch.int8), dim=-1)                   # [P]
         out = depths[order][first]
@@ -164,7 +165,7 @@ def contributors(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Ten
     with torch.no_grad():
         order, w, _ = _dense_weights(means2d, conics, opacities, depths, radii, width, height)
         keep = w > 0                                                           # [P, N]
-        offsets = torch.zeros(keep.shape[0] + 1, dtype=torch.long)
+        offsets = torch.zeros(keep.shape[0] + 1, dtype=torch.long, device=keep.device)
         offsets[1:] = torch.cumsum(keep.sum(-1), 0)
         ids = order.expand_as(keep)[keep]
     return offsets, ids

@@ -39,7 +39,7 @@ def _render(g: dict[str, torch.Tensor], view: View, sh_degree: int | None, backe
             g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
             view.viewmat[None], view.K[None], view.width, view.height, sh_degree=sh_degree, backend=backend,
         )  # [1, H, W, 3], [1, H, W, 1]
-    return colors[0].clamp(0, 1).numpy(), alphas[0, ..., 0].numpy()
+    return colors[0].clamp(0, 1).cpu().numpy(), alphas[0, ..., 0].cpu().numpy()
 
 
 def _image_metrics(render: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
@@ -63,8 +63,9 @@ def _join(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> dict[str, t
 
 def sos_colours(g: dict[str, torch.Tensor], noise: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """The SOS scene: the surface pure red with its own opacities, the infill pure green and opaque."""
-    red = torch.tensor([1.0, 0.0, 0.0]).expand(len(g["means"]), 3)
-    green = torch.tensor([0.0, 1.0, 0.0]).expand(len(noise["means"]), 3)
+    device = g["means"].device
+    red = torch.tensor([1.0, 0.0, 0.0], device=device).expand(len(g["means"]), 3)
+    green = torch.tensor([0.0, 1.0, 0.0], device=device).expand(len(noise["means"]), 3)
     return _join(_flat(g, red), _flat(noise, green))
 
 
@@ -72,7 +73,7 @@ def view_transmittance(sos_scene: dict[str, torch.Tensor], view: View, backend: 
                        ) -> tuple[float, np.ndarray, np.ndarray]:
     """T_v = sum(green) / sum(mask), the green image, and the mask: the view's, else the SOS render's alpha."""
     sos_rgb, sos_alpha = _render(sos_scene, view, None, backend)
-    mask = view.mask.numpy() if view.mask is not None else sos_alpha
+    mask = view.mask.cpu().numpy() if view.mask is not None else sos_alpha
     return float(sos_rgb[..., 1].sum() / max(float(mask.sum()), EPS)), sos_rgb[..., 1], mask
 
 
@@ -96,13 +97,13 @@ def evaluate(surface: Gaussians, infill: Infill, views: list[View], out_dir: Pat
     if m == 0:  # no green to hide: every view would score a meaningless SOS of 1
         raise BadInputError("SOS needs an infill to hide, and this one is empty (the surface spans no volume "
                             "that survives pruning and erosion); retrain, or score with a coarser infill")
-    noise_sh = torch.zeros(m, g["colors"].shape[1], 3)
-    noise_sh[:, 0] = rgb_to_sh(torch.tensor([0.0, 1.0, 0.0]))
+    noise_sh = torch.zeros(m, g["colors"].shape[1], 3, device=g["means"].device)
+    noise_sh[:, 0] = rgb_to_sh(torch.tensor([0.0, 1.0, 0.0], device=g["means"].device))
     starred = _join(_flat(g, g["colors"]), _flat(noise, noise_sh))
     sos_scene = sos_colours(g, noise)
     rows = []
     for view in views:
-        gt = view.target.numpy()
+        gt = view.target.cpu().numpy()
         render, _ = _render(_flat(g, g["colors"]), view, sh_degree, backend)
         transmittance, green, mask = view_transmittance(sos_scene, view, backend)
         mask_source = "mask" if view.mask is not None else "rendered alpha"

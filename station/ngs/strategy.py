@@ -122,7 +122,7 @@ def split(params: Params, optimizers: Optimizers, mask: torch.Tensor, generator:
     rest = torch.where(~mask)[0]
     scales = torch.exp(params["scales"][sel].detach())  # [S, 3]
     rotmats = quat_to_rotmat(params["quats"][sel].detach())  # [S, 3, 3]
-    noise = torch.randn(2, len(sel), 3, generator=generator)  # [2, S, 3]
+    noise = torch.randn(2, len(sel), 3, generator=generator, device=generator.device).to(scales.device)  # [2, S, 3]
     offsets = torch.einsum("nij,bnj->bni", rotmats, scales[None] * noise)  # [2, S, 3]
 
     def param_fn(name: str, p: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,7 @@ from typing import Callable, Literal
 
 import torch
 
-from station.errors import TrainingError
+from station.errors import BadInputError, TrainingError
 from station.ngs.checkpoint_io import load_training_checkpoint
 from station.ngs.dataset import SceneData, View, downscaled_view
 from station.ngs.gaussians import Gaussians
@@ -54,6 +54,7 @@ class TrainConfig:
     eval_every: int = 0  # held-out PSNR and SOS every this many steps (0: off), the speed-against-error evidence
     seed: int = 0
     backend: str = "auto"
+    device: str = "auto"  # where every training tensor lives: "auto" is cuda when available, else cpu
     loss: LossConfig = field(default_factory=LossConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # in 30k-step units, scaled to `steps`
     ngs: NGSConfig = field(default_factory=NGSConfig)
@@ -71,12 +72,26 @@ class TrainReport:
     final_loss: float
     resumed_from: int
     model_dir: str
+    device: str  # where it trained (TrainConfig.device resolved)
 
 
 def object_pixels(scene: SceneData) -> float | None:
     """Pixels the object covers in the mean masked training view; None without masks."""
     areas = [float(view.mask.sum()) for view in scene.train if view.mask is not None]
     return sum(areas) / len(areas) if areas else None
+
+
+def training_device(name: str) -> torch.device:
+    """The device `TrainConfig.device` names; "auto" is CUDA when torch sees a GPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError) as exc:
+        raise BadInputError(f"training device {name!r} is not a torch device ({exc})") from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise BadInputError(f"training device {name!r}: torch {torch.__version__} sees no CUDA device")
+    return device
 
 
 def check_finite(step: int, named: dict[str, torch.Tensor]) -> None:
@@ -88,18 +103,20 @@ def check_finite(step: int, named: dict[str, torch.Tensor]) -> None:
 class Trainer:
     def __init__(self, scene: SceneData, cfg: TrainConfig, model_dir: Path, inputs: str = ""):
         """`inputs` fingerprints the posed views; a checkpoint is resumed only from the same fingerprint."""
-        self.scene, self.cfg, self.model_dir, self.inputs = scene, cfg, Path(model_dir), inputs
-        self.model = Gaussians.from_points(scene.points, scene.point_colors, cfg.sh_degree, cfg.seed)
+        self.device = training_device(cfg.device)
+        self.cfg, self.model_dir, self.inputs = cfg, Path(model_dir), inputs
+        self.scene = scene.to(self.device)
+        self.model = Gaussians.from_points(scene.points, scene.point_colors, cfg.sh_degree, cfg.seed, self.device)
         self.optimizers = self._make_optimizers()
         densify = cfg.densify.scaled(cfg.steps)
         self.gaussian_budget = densify.budget_for(object_pixels(scene))
         self.strategy = DefaultStrategy(replace(densify, max_gaussians=self.gaussian_budget), scene.scene_scale,
                                         cfg.seed)
-        self.ngs = NGSPhases(cfg.ngs, cfg.steps, cfg.seed) if cfg.method == "ngs" else None
-        self.generator = torch.Generator().manual_seed(cfg.seed)
-        self.cameras = [Camera(v.viewmat, v.K, v.width, v.height) for v in scene.train]
+        self.ngs = NGSPhases(cfg.ngs, cfg.steps, cfg.seed, self.device) if cfg.method == "ngs" else None
+        self.generator = torch.Generator().manual_seed(cfg.seed)  # CPU: the same draws on every device
+        self.cameras = [Camera(v.viewmat, v.K, v.width, v.height) for v in self.scene.train]
         self.resolution_checks: list[dict] = []  # every check of the training level; the level follows from them
-        self._levels: dict[int, list[View]] = {1: scene.train}
+        self._levels: dict[int, list[View]] = {1: self.scene.train}
         self.step = 0
         self.seconds = 0.0
         self.losses: list[dict] = []
@@ -115,7 +132,9 @@ class Trainer:
             "sh0": self.cfg.lr_sh0,
             "shN": self.cfg.lr_shN,
         }
-        return {name: torch.optim.Adam([p], lr=lrs[name], eps=1e-15) for name, p in self.model.params.items()}
+        # fused: one kernel per parameter instead of a dozen small ops, which cost most beside numba's threads
+        return {name: torch.optim.Adam([p], lr=lrs[name], eps=1e-15, fused=True)
+                for name, p in self.model.params.items()}
 
     @property
     def level_downscale(self) -> int:
@@ -152,17 +171,18 @@ class Trainer:
         """One image, one Adam step; densification and NGS hooks around it."""
         check_finite(step, {f"parameter {k}": v for k, v in self.model.params.items()})
         views = self.train_views()
-        view = views[int(torch.randint(len(views), (1,), generator=self.generator))]
-        if self.ngs:
-            self.ngs.step_pre(step, {k: v.detach() for k, v in self.model.activated().items()}, self.cameras)
+        view = views[int(torch.randint(len(views), (1,), generator=self.generator, device="cpu"))]
         frozen = bool(self.ngs and self.ngs.surface_frozen(step))
         for p in self.model.params.values():
             p.requires_grad_(not frozen)
         self.optimizers["means"].param_groups[0]["lr"] = self.means_lr_at(step)
         g = self.model.activated()
+        if self.ngs:  # the same activations, detached: the infill is built from the surface's current state
+            self.ngs.step_pre(step, {k: v.detach() for k, v in g.items()}, self.cameras)
         noise = self.ngs.noise(g["colors"].shape[1]) if self.ngs else None
         surface_fg = bool(noise is not None and self.ngs.fg_on_surface(step))
-        is_noise = torch.cat([torch.zeros(len(self.model), 1), torch.ones(len(noise["means"]), 1)]) if surface_fg else None
+        is_noise = torch.cat([torch.zeros(len(self.model), 1, device=self.device),
+                              torch.ones(len(noise["means"]), 1, device=self.device)]) if surface_fg else None
         if noise is not None:
             g = {k: torch.cat([g[k], noise[k]]) for k in g}
         colors, alphas, meta = rasterization(
@@ -174,7 +194,8 @@ class Trainer:
             self.strategy.step_pre_backward(meta)
         alpha = alphas[0, ..., 0]
         surface_alpha = alpha - colors[0, ..., 3] if surface_fg else None
-        loss, terms = total_loss(colors[0, ..., :3], alpha, view.target, view.mask, self.cfg.loss, surface_alpha)
+        with self.device:  # losses.py and strategy.py create tensors without naming a device
+            loss, terms = total_loss(colors[0, ..., :3], alpha, view.target, view.mask, self.cfg.loss, surface_alpha)
         check_finite(step, {"loss": loss})
         if loss.requires_grad:  # False only when the surface is frozen and no noise survived
             loss.backward()
@@ -182,7 +203,8 @@ class Trainer:
             for optimizer in self.optimizers.values():
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
-            self.strategy.step_post_backward(self.model.params, self.optimizers, step, meta)
+            with self.device:
+                self.strategy.step_post_backward(self.model.params, self.optimizers, step, meta)
         if self.ngs:
             self.ngs.step_post_backward(step)
         terms["loss"] = float(loss.detach())
@@ -217,6 +239,7 @@ class Trainer:
             final_loss=self.losses[-1]["loss"] if self.losses else float("nan"),
             resumed_from=resumed_from,
             model_dir=str(self.model_dir),
+            device=str(self.device),
         )
 
     def _check_resolution(self) -> None:
@@ -254,7 +277,7 @@ class Trainer:
                     view.K[None], view.width, view.height,
                     sh_degree=self.cfg.sh_degree if sh_degree is None else sh_degree, backend=self.cfg.backend,
                 )
-            mask = view.mask[..., None] if view.mask is not None else torch.ones(1)
+            mask = view.mask[..., None] if view.mask is not None else torch.ones(1, device=self.device)
             mse = float(((colors[0].clamp(0, 1) - view.target) * mask).square().mean())
             values.append(10 * math.log10(1 / max(mse, 1e-12)))
         return sum(values) / len(values)
@@ -293,11 +316,12 @@ class Trainer:
             return 0
         if state["config"] != asdict(self.cfg):
             raise TrainingError(f"{path}: written by another training configuration; delete it to start over")
-        self.model = Gaussians.from_state_dict(state["model"])
+        self.model = Gaussians.from_state_dict(state["model"]).to(self.device)
         self.optimizers = self._make_optimizers()
         for name, opt in self.optimizers.items():
             opt.load_state_dict(state["optimizers"][name])
-        self.strategy.state = DensifyState.from_state_dict(state["strategy"])
+        self.strategy.state = DensifyState.from_state_dict(
+            {k: v.to(self.device) if torch.is_tensor(v) else v for k, v in state["strategy"].items()})
         self.strategy.generator.set_state(state["strategy_generator"])
         if self.ngs:
             self.ngs.load_state_dict(state["ngs"])
