@@ -53,7 +53,7 @@ def kind_of(data: dict) -> str:
     if isinstance(methods, dict) and methods:
         first = next(iter(methods.values()))
         if isinstance(first, dict) and "held_out_curve" in first:
-            return "ngs"
+            return "real" if data.get("benchmark") == "real" else "ngs"
         if isinstance(first, dict) and "chamfer_fraction_of_diagonal" in first:
             return "mesh"
     if "seconds_per_mask" in data and "summary" in data:
@@ -269,13 +269,14 @@ SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
     "cross_view": ("Masks cut again across rings", cross_view_section),
     "raster": ("Rasteriser speed", raster_section),
     "ngs": ("NGS against its baselines", ngs_section),
+    "real": ("NGS on real photos", ngs_section),
     "mesh": ("Mesh surface", mesh_section),
     "fidelity": ("Training views against the truth", fidelity_section),
     "batch": ("Batch throughput", batch_section),
     "batch_nodes": ("Batch throughput", batch_nodes_section),
     "other": ("Other results", other_section),
 }
-SCRIPTS = {"cross_view": "cross_view", "ngs": "ngs", "fidelity": "process", "batch_nodes": "batch"}
+SCRIPTS = {"cross_view": "cross_view", "fidelity": "process", "batch_nodes": "batch"}
 
 
 def load(path: Path) -> dict:

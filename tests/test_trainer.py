@@ -144,6 +144,19 @@ def test_growth_stops_at_the_budget_keeping_the_largest_gradients():
     assert sorted(params["means"][:, 0].tolist()) == [0.0, 1.0, 1.0, 2.0, 3.0, 3.0]
 
 
+def test_paced_growth_opens_the_budget_across_the_refine_window_and_grows_nothing_past_it():
+    paced = DensifyConfig(refine_start_iter=100, refine_stop_iter=1100, budget_ramp=0.5)
+    assert [paced.budget_at(step, 10_000) for step in (0, 100, 350, 600, 1000)] == [0, 0, 5_000, 10_000, 10_000]
+    assert DensifyConfig().budget_at(0, 10_000) == 10_000  # unpaced: gsplat's behaviour
+    params, optimizers = make_strategy_params(scales=[0.005] * 4, opacities=[0.5] * 4)
+    strategy = DefaultStrategy(replace(paced, refine_every=1, max_gaussians=12), scene_scale=1.0)
+    means2d = torch.zeros(1, 4, 2, requires_grad=True)
+    means2d.grad = torch.tensor([1.0, 4.0, 2.0, 3.0])[None, :, None].repeat(1, 1, 2)
+    info = {"means2d": means2d, "radii": torch.ones(1, 4), "width": 32, "height": 32}
+    strategy.step_post_backward(params, optimizers, step=350, info=info)  # 6 of 12 open: room for two clones
+    assert len(params["means"]) == 6
+
+
 def test_the_gaussian_budget_follows_the_objects_size_on_screen_up_to_its_cap(scan, tmp_path):
     per_pixel = DensifyConfig(max_gaussians=50_000, per_object_pixel=2.5)
     assert per_pixel.budget_for(4_000.0) == 10_000

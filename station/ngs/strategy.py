@@ -33,6 +33,16 @@ class DensifyConfig:
     # > 0: the budget follows the object, this many Gaussians per pixel it covers in the mean training
     # view, capped by max_gaussians: a stone filling twice the image needs about twice the Gaussians.
     per_object_pixel: float = 0.0
+    # > 0: growth is paced, the budget opening linearly until this fraction of the refine window has passed.
+    # Unpaced, a textured real scene spends the whole budget in its first refines, on coarse early views.
+    budget_ramp: float = 0.0
+
+    def budget_at(self, step: int, budget: int) -> int:
+        """How many Gaussians growth may reach by `step`."""
+        if self.budget_ramp <= 0:
+            return budget
+        ramp = self.budget_ramp * max(1, self.refine_stop_iter - self.refine_start_iter)
+        return round(budget * min(1.0, max(0, step - self.refine_start_iter) / ramp))
 
     def budget_for(self, object_pixels: float | None) -> int:
         """The Gaussian budget for an object covering `object_pixels` per view (None: unknown, no masks)."""
@@ -54,6 +64,7 @@ class DensifyConfig:
             refine_every=max(1, round(self.refine_every * f)),
             max_gaussians=self.max_gaussians,
             per_object_pixel=self.per_object_pixel,
+            budget_ramp=self.budget_ramp,
         )
 
 
@@ -181,7 +192,7 @@ class DefaultStrategy:
         self._accumulate(len(params["means"]), info)
         if step > cfg.refine_start_iter and step % cfg.refine_every == 0:
             before = len(params["means"])
-            cloned, splitted = self._grow(params, optimizers)
+            cloned, splitted = self._grow(params, optimizers, step)
             pruned = self._prune(params, optimizers, step)
             self.state.history.append(
                 {"step": step, "before": before, "cloned": cloned, "split": splitted, "pruned": pruned}
@@ -205,14 +216,14 @@ class DefaultStrategy:
         self.state.grad2d.index_add_(0, ids, grads[visible].norm(dim=-1))
         self.state.count.index_add_(0, ids, torch.ones_like(ids, dtype=torch.float32))
 
-    def _grow(self, params: Params, optimizers: Optimizers) -> tuple[int, int]:
+    def _grow(self, params: Params, optimizers: Optimizers, step: int) -> tuple[int, int]:
         if self.state.grad2d is None:
             return 0, 0
         cfg = self.cfg
         grads = self.state.grad2d / self.state.count.clamp_min(1)  # [N]
         high = grads > cfg.grow_grad2d
         small = torch.exp(params["scales"].detach()).max(dim=-1).values <= cfg.grow_scale3d * self.scene_scale
-        room = cfg.max_gaussians - len(params["means"])
+        room = cfg.budget_at(step, cfg.max_gaussians) - len(params["means"])
         if int(high.sum()) > room:  # over budget: grow only the largest gradients that still fit
             if room <= 0:
                 return 0, 0
