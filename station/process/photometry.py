@@ -5,8 +5,9 @@
   plates share, a falloff centred on the lens, log V = a rho^2 + b rho^4, is the vignetting.
 - Exposure within a ring: the camera does not move during a ring, so the backdrop on the frame border is
   the same light in every shot and in the ring's plate; the median ratio there is the exposure error.
-- Exposure across rings: a stone point posing triangulated looks the same from every ring that sees it
-  (soft light, matte stone), so the median log ratio of its tracks gives each ring's gain.
+- Exposure across rings: a stone point posing triangulated, seen from two rings at the same turn of the
+  plate, stood the same way in the lab's light both times, so it looks the same (matte stone) but for the
+  rings' exposures: the median log ratio over such points gives each ring's gain.
 """
 
 from __future__ import annotations
@@ -124,23 +125,34 @@ def exposure_to_plate(shot: np.ndarray, plate: np.ndarray, fraction: float = 0.0
     return float(np.median(ratio))
 
 
-def ring_gains(observations: list[tuple[int, str, float]], min_shared: int = 20) -> dict[str, float]:
-    """Per ring, the gain that brings it to the scan's common exposure, from (point id, ring, log luminance)
-    observations of triangulated points; a ring sharing fewer than `min_shared` points with others keeps 1."""
-    if not observations:
-        return {}
-    rings = sorted({ring for _, ring, _ in observations})
-    _, point = np.unique(np.array([p for p, _, _ in observations]), return_inverse=True)
-    ring = np.array([rings.index(r) for _, r, _ in observations])
-    value = np.array([v for _, _, v in observations])
-    pairs = np.unique(np.column_stack([point, ring]), axis=0)  # each (point, ring) once
-    rings_per_point = np.bincount(pairs[:, 0], minlength=point.max() + 1)
-    shared = np.bincount(pairs[:, 1], weights=rings_per_point[pairs[:, 0]] > 1, minlength=len(rings))
-    solvable = shared >= min_shared
-    gain = np.zeros(len(rings))
-    for _ in range(20):  # alternate: each point's level given the gains, each ring's gain given the levels
-        level = np.bincount(point, weights=value - gain[ring]) / np.bincount(point)
-        for i in np.flatnonzero(solvable):
-            gain[i] = float(np.median((value - level[point])[ring == i]))
-        gain[solvable] -= np.median(gain[solvable]) if solvable.any() else 0.0
-    return {r: float(np.exp(-gain[i])) for i, r in enumerate(rings)}
+def ring_gains(observations: list[tuple[int, str, float, float]], min_pairs: int = 20) -> dict[str, float]:
+    """Per ring, the gain that brings it to the scan's common exposure, from (point id, ring, azimuth, log
+    luminance) observations of triangulated points. Only a point seen from two rings at the same turn of the
+    plate is compared: the stone then stood the same way in the lab's light, so only the exposure differs.
+    Rings linked to the rest by fewer than `min_pairs` such points keep 1."""
+    rings = sorted({ring for _, ring, _, _ in observations})
+    seen: dict[tuple[int, float], dict[str, float]] = {}
+    for point, ring, azimuth, value in observations:
+        seen.setdefault((point, round(azimuth % 360.0, 2)), {})[ring] = value
+    differences: dict[tuple[int, int], list[float]] = {}
+    for by_ring in seen.values():
+        names = sorted(by_ring)
+        for i, first in enumerate(names):
+            for second in names[i + 1:]:
+                differences.setdefault((rings.index(first), rings.index(second)), []).append(
+                    by_ring[first] - by_ring[second])
+    pairs = [(i, j, float(np.median(d)), len(d)) for (i, j), d in differences.items() if len(d) >= min_pairs]
+    linked = sorted({i for i, j, _, _ in pairs} | {j for i, j, _, _ in pairs})
+    if len(linked) < 2:
+        return {r: 1.0 for r in rings}
+    # log exposure per linked ring: each pair's median difference, weighted by its count; the mean fixed at 0
+    design = np.zeros((len(pairs) + 1, len(linked)))
+    target = np.zeros(len(pairs) + 1)
+    for row, (i, j, difference, count) in enumerate(pairs):
+        weight = np.sqrt(count)
+        design[row, linked.index(i)], design[row, linked.index(j)], target[row] = weight, -weight, weight * difference
+    design[-1] = 1.0
+    exposure = np.linalg.lstsq(design, target, rcond=None)[0]
+    gains = {r: 1.0 for r in rings}
+    gains.update({rings[i]: float(np.exp(-exposure[k])) for k, i in enumerate(linked)})
+    return gains

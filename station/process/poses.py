@@ -292,6 +292,7 @@ def _normalise_ring_exposure(scan: ScanFolder, rec: pycolmap.Reconstruction, ref
     The develop already matched each shot to its ring's plate; what is left is one exposure error per plate.
     """
     ring_of = {r.name: f"{r.elevation_deg:g}" for r in refs}
+    azimuth_of = {r.name: float(r.azimuth_deg) for r in refs}
     observations = []
     for image in rec.images.values():
         if not image.has_pose or image.name not in ring_of:
@@ -302,7 +303,8 @@ def _normalise_ring_exposure(scan: ScanFolder, rec: pycolmap.Reconstruction, ref
             if p.has_point3D():
                 x, y = (min(max(int(v), 0), n - 1) for v, n in zip(p.xy, box.shape[::-1]))
                 if box[y, x] > 1e-3:
-                    observations.append((p.point3D_id, ring_of[image.name], float(np.log(box[y, x]))))
+                    observations.append((p.point3D_id, ring_of[image.name], azimuth_of[image.name],
+                                         float(np.log(box[y, x]))))
     gains = {ring: gain if abs(gain - 1.0) > min_change else 1.0 for ring, gain in ring_gains(observations).items()}
     for ref in refs:
         gain = gains.get(ring_of[ref.name], 1.0)
