@@ -3,7 +3,8 @@
 The chain is the physical one, so the develop stage faces real problems: the camera's RGB is not
 sRGB (a non-identity XYZ->camera matrix, with weak red and blue), the lens vignettes and each
 shot's exposure is a little off (sim/lens.py), photons arrive as Poisson shot noise, the readout
-adds Gaussian noise on a black level, and highlights clip at the white level. Everything random comes from the caller's generator, so a seed fixes a frame.
+adds Gaussian noise on a black level, and highlights clip at the white level. Everything random
+comes from the caller's generator, so a seed fixes a frame.
 """
 
 from __future__ import annotations

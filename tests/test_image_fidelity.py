@@ -62,7 +62,7 @@ def _trained_view(spec: str, elevation: float, azimuth: float, folder: Path) -> 
         path = folder / f"{'shot' if present else 'plate'}.dng"
         path.write_bytes(dng_bytes(sensor.expose(out.radiance, 1 / 30, 100, rng), sensor))
         developed.append(develop_raw(path, DevelopSettings()).linear)
-        truths.append(TruthImage.of(out, sensor).downscaled(320))
+        truths.append(TruthImage.of(out).downscaled(320))
     matte = compute_matte(*developed).downscaled(320)
     return matte.foreground, matte.alpha, truths[0]
 

@@ -60,7 +60,8 @@ class FrameReport:
     azimuth_deg: float
     flags: list[str] = field(default_factory=list)
     clipped_fraction: float | None = None
-    exposure_scale: float | None = None
+    exposure_scale: float | None = None  # from the manifest's exposure time and ISO
+    plate_gain: float | None = None  # then to the ring's plate on the backdrop: the shutter's own error
     mask_area_fraction: float | None = None
 
 
@@ -219,7 +220,7 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         if settings.exposure_to_plate and abs(plate_elev - entry.elevation_deg) <= 1e-3:
             gain = exposure_to_plate(linear, plate_linear[plate_elev])
             linear *= np.float32(gain)
-            report.exposure_scale = (report.exposure_scale or 1.0) * gain
+            report.plate_gain = gain
         stem = Path(entry.file).stem
         started = time.perf_counter()
         matte = training_matte(linear, plate_linear[plate_elev], settings)
