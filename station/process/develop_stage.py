@@ -1,9 +1,9 @@
 """The develop-and-mask stage over a whole scan folder.
 
 Reads manifest.jsonl, takes one white balance for the scan from its neutral plates, measures the
-lens's vignetting on the plates and takes it out of every frame, scales every frame to a common
-exposure (the manifest's, then each shot's to its ring's plate on the static backdrop, see
-photometry.py), optionally corrects colour against a chart seen in a plate,
+lens's vignetting on the plates (photometry.py) and takes it out of the training images, scales
+every frame to a common exposure (the manifest's, then each shot's to its ring's plate on the
+static backdrop), optionally corrects colour against a chart seen in a plate,
 and writes images/<stem>.png (16-bit sRGB), images_linear/<stem>.exr (half linear, the shot as
 developed; plates too, so the masks can be cut again after posing) and masks/<stem>.png for every
 shot. The mask holds the stone's coverage (255 inside, fractions on its edge), and images/ hold the
@@ -74,7 +74,8 @@ class DevelopReport:
     plates: dict[float, str]  # elevation -> stem of the developed plate in images_linear/
     seconds: float
     matte_seconds: float = 0.0  # of `seconds`, the share spent cutting and unmixing the mattes
-    vignetting_stops: float | None = None  # light the measured flat field says the corners lose; None: not measured
+    flat_field: FlatField = FlatField()  # the lens's vignetting as measured on the plates (none: not measured)
+    vignetting_stops: float | None = None  # the light it says the corners lose; None: not measured
 
     @property
     def usable_shots(self) -> list[FrameReport]:
@@ -108,11 +109,16 @@ def flag_implausible_masks(
 
 def training_matte(
     shot: np.ndarray, plate: np.ndarray, settings: ProcessSettings,
-    silhouette: np.ndarray | None = None, roofed: np.ndarray | None = None,
+    silhouette: np.ndarray | None = None, roofed: np.ndarray | None = None, flat: FlatField = FlatField(),
 ) -> Matte:
     """The matte a developed shot trains with: cut at the developed resolution, then averaged down to the
-    training width (the first cut and the cut across rings alike)."""
+    training width (the first cut and the cut across rings alike).
+
+    The cut sees the light as the sensor got it (the matte's noise model is photon noise against the plate's
+    level); only the stone's colour is flat-fielded, by `flat`.
+    """
     matte = compute_matte(shot, plate, settings.masks, silhouette, roofed)
+    matte = Matte(matte.alpha, flat.correct(matte.foreground))
     return matte if settings.training_width is None else matte.downscaled(settings.training_width)
 
 
@@ -187,13 +193,11 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
     flat = FlatField()
     if settings.flat_field:
         flat = fit_flat_field([p.linear for p in developed_plates.values()], settings.flat_field_fit)
-        for plate in developed_plates.values():
-            plate.linear = flat.correct(plate.linear)
     correction, colour_source, chart_de = None, next(iter(developed_plates.values())).matrix_source, None
     if settings.use_chart:
         for plate in developed_plates.values():
             try:
-                fit = locate_and_fit_chart(plate.linear)
+                fit = locate_and_fit_chart(flat.correct(plate.linear))
             except ChartNotFoundError:
                 continue
             if fit.delta_e_after <= settings.max_chart_delta_e and fit.delta_e_after < fit.delta_e_before:
@@ -215,15 +219,14 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         plate_elev = nearest_elevation(plate_linear, entry.elevation_deg)
         if abs(plate_elev - entry.elevation_deg) > 1e-3:
             report.flags.append(f"no_plate: none at {entry.elevation_deg} deg, masked against {plate_elev} deg")
-        linear = flat.correct(frame.linear)
-        linear = linear if correction is None else np.clip(linear @ correction.T, 0.0, None)
+        linear = frame.linear if correction is None else np.clip(frame.linear @ correction.T, 0.0, None)
         if settings.exposure_to_plate and abs(plate_elev - entry.elevation_deg) <= 1e-3:
             gain = exposure_to_plate(linear, plate_linear[plate_elev])
             linear *= np.float32(gain)
             report.plate_gain = gain
         stem = Path(entry.file).stem
         started = time.perf_counter()
-        matte = training_matte(linear, plate_linear[plate_elev], settings)
+        matte = training_matte(linear, plate_linear[plate_elev], settings, flat=flat)
         matte_seconds += time.perf_counter() - started
         mask = matte.mask
         write_training_view(scan, stem, matte)
@@ -241,5 +244,6 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         plates=plate_stems,
         seconds=time.perf_counter() - start,
         matte_seconds=matte_seconds,
+        flat_field=flat,
         vignetting_stops=flat.corner_stops if settings.flat_field else None,
     )
