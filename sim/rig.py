@@ -19,6 +19,7 @@ import numpy as np
 
 from sim.dng import dng_bytes
 from sim.grbl_links import FakeTurntable, start_fake_turntable
+from sim.lens import SimLens
 from sim.ptp_camera import CaptureSettings, SimPtpCamera
 from sim.scene import World, frame_source, render
 from sim.sensor import SensorModel
@@ -127,10 +128,11 @@ def build_sim_rig(
     time_scale: float = 0.05,
     route: Literal["url", "pty"] = "url",
     seed: int = 0,
+    lens: SimLens = SimLens(),
 ) -> SimRig:
     """Start the emulators, connect the real drivers to them, and return the assembled rig."""
-    world = World(stone, rig=rig)
-    sensor = SensorModel()
+    world = World(stone, rig=rig, lens=lens)
+    sensor = SensorModel(lens=lens)
     board = start_fake_turntable(route, time_scale=time_scale, seed=seed)
     render = frame_source(world, board.firmware.position, sensor, seed)
     staging = tempfile.TemporaryDirectory(prefix="sim-truth-")
@@ -141,7 +143,7 @@ def build_sim_rig(
         if world.stone_present:
             elevation, azimuth = render.last_pose
             staged = Path(staging.name) / f"{render.count:05d}.exr"
-            write_truth_image(staged, TruthImage.of(render.last, sensor))
+            write_truth_image(staged, TruthImage.of(render.last))
             shots.append((elevation, azimuth, render.last.mask, staged))
         return data, name
 
@@ -158,11 +160,11 @@ def build_sim_rig(
 
 def direct_scan(
     root: Path, stone: Stone, rig: RigGeometry, elevations: tuple[float, ...], azimuths: int,
-    *, exposure_s: float = 1 / 30, seed: int = 0,
+    *, exposure_s: float = 1 / 30, seed: int = 0, lens: SimLens = SimLens(),
 ) -> ScanFolder:
     """A scan as capture leaves it (raw DNGs with one plate per ring, manifest, scan.json, sim_truth/), rendered
     straight at the planned poses without the emulated board and camera: quick, for benches and tests."""
-    world, sensor, scan = World(stone, rig), SensorModel(), ScanFolder(root)
+    world, sensor, scan = World(stone, rig, lens=lens), SensorModel(lens=lens), ScanFolder(root)
     entries = []
     for i, elevation in enumerate(elevations):
         for j in [None, *range(azimuths)]:
@@ -174,7 +176,7 @@ def direct_scan(
             atomic_write_bytes(scan.root / name, data)
             kind = "plate" if j is None else "shot"
             entries.append(ManifestEntry(name, sha256_bytes(data), elevation, azimuth, kind, exposure_s, 100, ""))
-            image = TruthImage.of(out, sensor) if j is not None else None
+            image = TruthImage.of(out) if j is not None else None
             write_truth_frame(scan.root, world, name, elevation, azimuth, mask=out.mask, image=image)
     scan.write_manifest(entries)
     atomic_write_json(scan.scan_json, {"rig": rig.to_dict(), "plan": {"elevations_deg": list(elevations),

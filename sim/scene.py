@@ -5,7 +5,8 @@ Frames: the stone and the grey plate turn together, so the world frame is the tu
 so in the turntable frame they turn by -azimuth; a point p in the turntable frame is Rz(azimuth)·p in
 the lab. Light is mostly uniform with a mild key, which is how a softbox station looks and what makes
 textureless stones hard. The stone is ray cast with embree (through trimesh); plate, backdrop and
-chart are analytic. Vignetting and noise belong to the sensor (sim/sensor.py), not here.
+chart are analytic. The lens's distortion bends the rays (sim/lens.py); its vignetting and the noise
+belong to the sensor (sim/sensor.py), not here.
 
 Pixel convention: pixel (row i, col j) covers [j, j+1) x [i, i+1) in the coordinates K uses, so its
 centre is (j + 0.5, i + 0.5), as in COLMAP and gsplat.
@@ -21,6 +22,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter, map_coordinates
 
 from sim.dng import dng_bytes
+from sim.lens import SimLens
 from sim.sensor import SensorModel
 from sim.stone import Stone
 from station.errors import BadInputError
@@ -120,6 +122,7 @@ class World:
     stone: Stone
     rig: RigGeometry = field(default_factory=RigGeometry)
     stone_present: bool = True
+    lens: SimLens = field(default_factory=SimLens)  # its distortion decides where each pixel looks
     plate_radius_m: float = 0.15
     plate_albedo: float = 0.30
     backdrop_radius_m: float = 1.5
@@ -185,23 +188,25 @@ def _cosine_hemisphere(n: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def _camera_frame_rays(rig: RigGeometry, supersample: int) -> np.ndarray:
-    """[H*s * W*s, 3] float32 unit ray directions in the camera frame; the same for every pose."""
+def _camera_frame_rays(rig: RigGeometry, lens: SimLens, supersample: int) -> np.ndarray:
+    """[H*s * W*s, 3] float32 unit ray directions in the camera frame, through the lens; the same for every pose."""
     s = supersample
-    k = rig.intrinsics()
     xs = (np.arange(rig.width * s) + 0.5) / s
     ys = (np.arange(rig.height * s) + 0.5) / s
-    px, py = np.meshgrid((xs - k[0, 2]) / k[0, 0], (ys - k[1, 2]) / k[1, 1])
-    cam = np.stack([px.ravel(), py.ravel(), np.ones(px.size)], axis=1)  # [R, 3]
+    px, py = np.meshgrid(xs, ys)
+    seen = lens.pixel_directions(rig.intrinsics(), px.ravel(), py.ravel())  # [R, 2]
+    cam = np.column_stack([seen, np.ones(len(seen))])  # [R, 3]
     cam = (cam / np.sqrt(_dot(cam, cam))[:, None]).astype(np.float32)
     cam.flags.writeable = False  # shared by every render through the cache
     return cam
 
 
-def camera_rays(rig: RigGeometry, c2w: np.ndarray, supersample: int) -> tuple[np.ndarray, np.ndarray]:
+def camera_rays(rig: RigGeometry, c2w: np.ndarray, supersample: int,
+                lens: SimLens = SimLens.ideal()) -> tuple[np.ndarray, np.ndarray]:
     """The eye [3] and unit ray directions [H*s * W*s, 3] (float32) in world frame, row-major over the
     supersampled grid."""
-    return c2w[:3, 3].astype(np.float32), _camera_frame_rays(rig, supersample) @ c2w[:3, :3].T.astype(np.float32)
+    rays = _camera_frame_rays(rig, lens, supersample)
+    return c2w[:3, 3].astype(np.float32), rays @ c2w[:3, :3].T.astype(np.float32)
 
 
 def _irradiance(world: World, normals: np.ndarray, key: np.ndarray) -> np.ndarray:
@@ -284,7 +289,7 @@ def render(
     present = world.stone_present if stone_present is None else stone_present
     rig, s = world.rig, supersample
     c2w = camera_to_turntable(elevation_deg, azimuth_deg, rig)
-    eye, dirs = camera_rays(rig, c2w, s)  # [3], [R, 3]
+    eye, dirs = camera_rays(rig, c2w, s, world.lens)  # [3], [R, 3]
     to_lab = rotation_z(azimuth_deg).astype(np.float32)  # turntable -> lab
     key = np.asarray(world.key_direction_lab, dtype=np.float32)
     key = to_lab.T @ (key / np.linalg.norm(key))  # the lab's key light in the turntable frame

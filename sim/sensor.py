@@ -1,9 +1,10 @@
 """A Bayer camera for the simulated rig: what turns scene radiance into a 16-bit raw mosaic.
 
 The chain is the physical one, so the develop stage faces real problems: the camera's RGB is not
-sRGB (a non-identity XYZ->camera matrix, with weak red and blue), the lens vignettes, photons
-arrive as Poisson shot noise, the readout adds Gaussian noise on a black level, and highlights clip
-at the white level. Everything random comes from the caller's generator, so a seed fixes a frame.
+sRGB (a non-identity XYZ->camera matrix, with weak red and blue), the lens vignettes and each
+shot's exposure is a little off (sim/lens.py), photons arrive as Poisson shot noise, the readout
+adds Gaussian noise on a black level, and highlights clip at the white level. Everything random
+comes from the caller's generator, so a seed fixes a frame.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sim.lens import SimLens
 from station.errors import BadInputError
 
 # linear sRGB (D65) -> CIE XYZ, IEC 61966-2-1
@@ -40,7 +42,7 @@ class SensorModel:
     # electrons per (unit camera-RGB radiance x second) at ISO 100: 1/30 s puts the backdrop near 40% of range
     electrons_per_radiance_s: float = 6.0e5
     read_noise_dn: float = 2.0
-    vignetting_corner_deg: float = 20.0  # off-axis angle at the image corner for the cos^4 falloff
+    lens: SimLens = field(default_factory=SimLens)  # its vignetting and the shutter's jitter act here
 
     def camera_neutral(self) -> np.ndarray:
         """[3] camera RGB of a D65 white, green = 1: the DNG AsShotNeutral under the softbox."""
@@ -52,11 +54,8 @@ class SensorModel:
         return radiance @ (self.xyz_to_camera @ SRGB_TO_XYZ).T
 
     def vignetting(self, height: int, width: int) -> np.ndarray:
-        """[H, W] natural cos^4 falloff, 1 on the optical axis."""
-        ys = np.arange(height) + 0.5 - height / 2.0
-        xs = np.arange(width) + 0.5 - width / 2.0
-        radius = np.hypot(*np.meshgrid(ys, xs, indexing="ij")) / np.hypot(height / 2.0, width / 2.0)
-        return np.cos(np.arctan(radius * np.tan(np.deg2rad(self.vignetting_corner_deg)))) ** 4
+        """[H, W] the lens's falloff, 1 on the optical axis."""
+        return self.lens.falloff(height, width)
 
     def expose(self, radiance: np.ndarray, exposure_s: float, iso: float, rng: np.random.Generator) -> np.ndarray:
         """[H, W, 3] linear sRGB radiance -> [H, W] uint16 RGGB mosaic with noise, black level and clipping."""
@@ -69,7 +68,8 @@ class SensorModel:
             raise BadInputError(f"exposure {exposure_s} s must be positive")
         if not (25 <= iso <= 204800):
             raise BadInputError(f"ISO {iso} is outside 25..204800")
-        camera = self.radiance_to_camera(radiance) * self.vignetting(height, width)[:, :, None]
+        light = self.vignetting(height, width) * self.lens.shot_gain(rng)  # [H, W]
+        camera = self.radiance_to_camera(radiance) * light[:, :, None]
         mosaic = bayer_sample(np.clip(camera, 0.0, None))  # [H, W]
         electrons = rng.poisson(mosaic * self.electrons_per_radiance_s * exposure_s).astype(np.float64)
         gain = (self.white_level - self.black_level) / self.full_well_e * (iso / 100.0)  # DN per electron

@@ -1,8 +1,9 @@
 """sim_truth/: what a simulated scan really was, for tests and benchmarks to score the pipeline against.
 
 Layout (contract.md): mesh.ply (the true stone, turntable frame, metres), cameras.json (per frame:
-file, 4x4 camera-to-world in OpenCV convention, K, width, height), masks/<stem>.png (8-bit, 255 =
-stone) and images/<stem>.exr, the noise-free image the sensor was exposed to (`TruthImage`);
+file, 4x4 camera-to-world in OpenCV convention, K, the lens's distortion k1, k2, p1, p2, width,
+height), masks/<stem>.png (8-bit, 255 = stone) and images/<stem>.exr, the noise-free image an ideal
+develop makes of the shot (`TruthImage`);
 images_<W>w/ holds it at a training width W, made on first use by `true_images_at`. Frames are added
 one at a time by `write_truth_frame` so a scan that resumes after a crash adds its new frames without
 rewriting the ones it already has; every write is atomic.
@@ -21,8 +22,8 @@ import numpy as np
 import OpenEXR
 from PIL import Image
 
+from sim.lens import SimLens
 from sim.scene import RenderOut, World, render
-from sim.sensor import SensorModel
 from sim.stone import Stone
 from station.errors import BadInputError, ScanFolderError
 from station.rig_geometry import RigGeometry, camera_to_turntable
@@ -43,18 +44,18 @@ def mask_path_for(scan_root: Path, file: str) -> Path:
 
 @dataclass
 class TruthImage:
-    """What the sensor was exposed to, before mosaic, noise and clipping: linear sRGB primaries, the lens's
-    vignetting included (the develop does not undo it), and the same split into the stone alone."""
+    """What an ideal develop makes of a shot: the scene radiance each pixel sees through the lens, in linear
+    sRGB primaries, in the sensor's own (distorted) geometry, with the lens's vignetting and the shot's
+    exposure error taken out; and the same split into the stone alone. Undistortion is posing's job, after
+    the develop, so the develop's output is scored in the sensor's geometry."""
 
-    exposed: np.ndarray  # [H, W, 3] float32: scene radiance times vignetting
+    exposed: np.ndarray  # [H, W, 3] float32: scene radiance, flat-fielded, at the nominal exposure
     stone: np.ndarray  # [H, W, 3] float32: the stone's share of `exposed`, premultiplied by its coverage
     alpha: np.ndarray  # [H, W] float32: the stone's coverage
 
     @classmethod
-    def of(cls, out: RenderOut, sensor: SensorModel) -> "TruthImage":
-        h, w = out.alpha.shape
-        vignetting = sensor.vignetting(h, w).astype(np.float32)[..., None]
-        return cls(exposed=out.radiance * vignetting, stone=out.stone * vignetting, alpha=out.alpha)
+    def of(cls, out: RenderOut) -> "TruthImage":
+        return cls(exposed=out.radiance, stone=out.stone, alpha=out.alpha)
 
     def downscaled(self, width: int) -> "TruthImage":
         """Area-averaged to `width` pixels wide: exact, as a render is itself a box filter over its samples."""
@@ -126,10 +127,17 @@ def true_masks_at(scan_root: Path, stone: Stone, width: int, files: Sequence[str
     only at the sensor's size, and a 0/1 mask cannot be averaged down."""
     scan_root = Path(scan_root)
     sensor = RigGeometry.from_dict(ScanFolder(scan_root).read_scan_json()["rig"])
-    world = World(stone, rig=sensor.scaled(width, round(sensor.height * width / sensor.width)))
     where = {c["file"]: c for c in _read_cameras(_truth_paths(scan_root)[1])}
+    lens = _lens_of(where[files[0]]) if files else SimLens()
+    world = World(stone, rig=sensor.scaled(width, round(sensor.height * width / sensor.width)), lens=lens)
     return {file: render(world, where[file]["elevation_deg"], where[file]["azimuth_deg"], stone_present=True,
                          supersample=4).mask for file in files}
+
+
+def _lens_of(record: dict) -> SimLens:
+    """The lens a truth camera record was shot through (vignetting and jitter do not change masks)."""
+    terms = record.get("distortion", {})
+    return SimLens(distortion=any(terms.values()), **terms) if isinstance(terms, dict) else SimLens()
 
 
 def _camera_record(world: World, file: str, elevation_deg: float, azimuth_deg: float) -> dict:
@@ -140,6 +148,7 @@ def _camera_record(world: World, file: str, elevation_deg: float, azimuth_deg: f
         "azimuth_deg": float(azimuth_deg),
         "camera_to_world": camera_to_turntable(elevation_deg, azimuth_deg, rig).tolist(),
         "K": rig.intrinsics().tolist(),
+        "distortion": world.lens.to_dict(),
         "width": rig.width,
         "height": rig.height,
     }
@@ -184,7 +193,7 @@ def write_truth_frame(
         write_truth_mesh(scan_root, world)
     if mask is None:
         out = render(world, elevation_deg, azimuth_deg, supersample=2)
-        mask, image = out.mask, TruthImage.of(out, SensorModel())
+        mask, image = out.mask, TruthImage.of(out)
     if image is not None:
         write_truth_image(image_path_for(scan_root, file), image)
     if mask.shape != (world.rig.height, world.rig.width):
@@ -206,7 +215,7 @@ def write_sim_truth(scan_root: Path, world: World, frames: Sequence[Frame]) -> N
     for file, elevation, azimuth in frames:
         out = render(world, elevation, azimuth, stone_present=True, supersample=2)
         mask = out.mask
-        write_truth_image(image_path_for(scan_root, file), TruthImage.of(out, SensorModel()))
+        write_truth_image(image_path_for(scan_root, file), TruthImage.of(out))
         png = Image.fromarray(np.where(mask, 255, 0).astype(np.uint8))
         atomic_write_with(mask_path_for(scan_root, file), lambda tmp, png=png: png.save(tmp, format="PNG"))
     records = [_camera_record(world, file, elev, azim) for file, elev, azim in frames]

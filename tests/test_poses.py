@@ -24,6 +24,7 @@ from station.process.rig_model import (
 )
 from station.process.sfm import SfmSettings
 from station.process.transforms import read_transforms
+from sim.lens import SimLens
 from sim.scene import World, render
 from sim.stone import procedural_stone
 from station.rig_geometry import RigGeometry, camera_to_turntable
@@ -44,7 +45,8 @@ def make_scan(root: Path, look: str, azimuths: int, skip: tuple[int, ...] = (),
               width: int = 320) -> tuple[ScanFolder, trimesh.Trimesh]:
     """A developed, masked scan of a simulated stone, as `station process` sees it after develop + masks."""
     rig = RIG.scaled(width, width * 3 // 4)
-    world = World(procedural_stone(seed=11, size_m=0.09, look=look), rig)
+    # a pinhole camera: the tests that want a lens add one
+    world = World(procedural_stone(seed=11, size_m=0.09, look=look), rig, lens=SimLens.ideal())
     scan = ScanFolder(root)
     scan.images_dir.mkdir(parents=True)
     scan.masks_dir.mkdir()

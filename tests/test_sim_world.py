@@ -17,6 +17,7 @@ from PIL import Image
 from trimesh.ray import ray_pyembree
 
 from sim.dng import read_dng
+from sim.lens import SimLens
 from sim.scene import CHART_LINEAR_SRGB, World, camera_rays, frame_source, render
 from sim.sensor import SensorModel
 from sim.stone import BACKDROP_ALBEDO, LOOKS, load_stone_mesh, procedural_stone
@@ -216,7 +217,7 @@ def test_the_chart_patches_keep_their_reflectance_ratios_in_a_low_plate(world):
 
 # Sensor ----------------------------------------------------------------------------------------
 def test_sensor_is_linear_in_exposure_and_iso_and_seeded():
-    sensor = SensorModel(vignetting_corner_deg=0.0)
+    sensor = SensorModel(lens=SimLens.ideal())
     flat = np.full((64, 64, 3), 0.3, np.float32)
 
     def signal(exposure_s: float, iso: int) -> float:
@@ -230,7 +231,7 @@ def test_sensor_is_linear_in_exposure_and_iso_and_seeded():
 
 
 def test_sensor_mosaic_is_rggb_with_noise_clipping_and_vignetting():
-    sensor = SensorModel()
+    sensor = SensorModel(lens=SimLens(exposure_jitter=False))
     red = np.zeros((64, 64, 3), np.float32)
     red[..., 0] = 0.5
     mosaic = sensor.expose(red, 0.01, 100, np.random.default_rng(0)).astype(float) - sensor.black_level
@@ -239,7 +240,10 @@ def test_sensor_mosaic_is_rggb_with_noise_clipping_and_vignetting():
     assert bright.max() == sensor.white_level
     grey = sensor.expose(np.full((240, 320, 3), 0.3, np.float32), 0.01, 100, np.random.default_rng(0)).astype(float)
     green = grey[0::2, 1::2] - sensor.black_level  # [120, 160]
-    assert green[:6, :6].mean() / green[57:63, 77:83].mean() == pytest.approx(np.cos(np.deg2rad(20.0)) ** 4, rel=0.03)
+    falloff = sensor.vignetting(240, 320)[0::2, 1::2]
+    assert green[:6, :6].mean() / green[57:63, 77:83].mean() == pytest.approx(
+        falloff[:6, :6].mean() / falloff[57:63, 77:83].mean(), rel=0.03)
+    assert falloff[0, 0] == pytest.approx(2 ** -0.6, rel=0.01)  # 0.6 stops down in the corner
     assert green[50:70, 70:90].std() > 5.0  # shot and read noise
 
 
@@ -297,20 +301,21 @@ def test_sim_truth_keeps_the_noise_free_exposed_image_also_at_a_training_width(w
     file = "raw/e20_a090.dng"
     write_sim_truth(tmp_path, world, [(file, 20.0, 90.0)])
     out = render(world, 20.0, 90.0, stone_present=True)
-    truth, expected = read_truth_image(image_path_for(tmp_path, file)), TruthImage.of(out, SensorModel())
+    truth, expected = read_truth_image(image_path_for(tmp_path, file)), TruthImage.of(out)
     np.testing.assert_allclose(truth.exposed, expected.exposed, rtol=2e-3, atol=1e-4)  # half floats
     np.testing.assert_allclose(truth.stone, expected.stone, rtol=2e-3, atol=1e-4)
     np.testing.assert_allclose(truth.alpha, out.alpha, atol=1e-3)
     assert np.all(truth.stone[out.alpha == 0] == 0) and np.all(truth.exposed[out.alpha == 1] == truth.stone[out.alpha == 1])
-    corner = SensorModel().vignetting(*out.alpha.shape)[0, 0]
-    assert truth.exposed[0, 0, 1] == pytest.approx(out.radiance[0, 0, 1] * corner, rel=2e-3)  # the lens's falloff
+    # what an ideal develop makes: the lens's falloff taken out
+    assert truth.exposed[0, 0, 1] == pytest.approx(out.radiance[0, 0, 1], rel=2e-3)
     w, h = world.rig.width // 2, world.rig.height // 2
     half = true_images_at(tmp_path, w, [file])[file]
     assert image_path_for(tmp_path, file, w).is_file()
     # a render is a box filter, so averaging it down is rendering at the smaller size with the same samples
-    direct = render(World(world.stone, rig=world.rig.scaled(w, h)), 20.0, 90.0, stone_present=True, supersample=4)
+    direct = render(World(world.stone, rig=world.rig.scaled(w, h), lens=world.lens), 20.0, 90.0, stone_present=True,
+                    supersample=4)
     np.testing.assert_allclose(half.alpha, direct.alpha, atol=2e-3)
-    np.testing.assert_allclose(half.stone, TruthImage.of(direct, SensorModel()).stone, atol=5e-3)
+    np.testing.assert_allclose(half.stone, TruthImage.of(direct).stone, atol=5e-3)
 
 
 def test_truth_frames_are_added_one_by_one_on_resume(world, tmp_path):
@@ -331,7 +336,7 @@ def test_truth_refuses_frames_outside_the_scan_folder(world, tmp_path):
 def test_developing_the_dng_gives_back_the_scene_colours(world):
     """Render -> sensor -> DNG -> LibRaw linear sRGB develop: the chart's colours survive the chain."""
     rig, elevation = world.rig, 10.0
-    sensor = SensorModel(vignetting_corner_deg=0.0, read_noise_dn=0.5)
+    sensor = SensorModel(lens=SimLens.ideal(), read_noise_dn=0.5)
     data, _ = frame_source(world, lambda: (0.0, elevation), sensor, seed=1)(Settings(exposure_s=1 / 30))
     with rawpy.imread(io.BytesIO(data)) as raw:
         developed = raw.postprocess(

@@ -210,7 +210,7 @@ def refine_masks_across_rings(
                 # cut at the developed resolution, as the first cut was (training_matte averages it down)
                 silhouette = project_hull(tolerant, posed[file], intr.scaled(shot.shape[1], shot.shape[0]))
                 roofed = roofed_part(silhouette, posed[file], hull_views_down)
-                matte = training_matte(shot, plate, process, silhouette, roofed)
+                matte = training_matte(shot, plate, process, silhouette, roofed, develop.flat_field)
                 write_training_view(scan, stem, matte)
                 after = matte.mask
                 recut.append(Path(file).name)

@@ -1,7 +1,9 @@
 """The develop-and-mask stage over a whole scan folder.
 
-Reads manifest.jsonl, takes one white balance for the scan from its neutral plates, scales
-every frame to a common exposure, optionally corrects colour against a chart seen in a plate,
+Reads manifest.jsonl, takes one white balance for the scan from its neutral plates, measures the
+lens's vignetting on the plates (photometry.py) and takes it out of the training images, scales
+every frame to a common exposure (the manifest's, then each shot's to its ring's plate on the
+static backdrop), optionally corrects colour against a chart seen in a plate,
 and writes images/<stem>.png (16-bit sRGB), images_linear/<stem>.exr (half linear, the shot as
 developed; plates too, so the masks can be cut again after posing) and masks/<stem>.png for every
 shot. The mask holds the stone's coverage (255 inside, fractions on its edge), and images/ hold the
@@ -28,6 +30,7 @@ from station.process.colour import ChartNotFoundError, locate_and_fit_chart, whi
 from station.process.develop import Developed, DevelopSettings, WhiteBalance, develop_raw
 from station.process.images_io import write_exr_half, write_mask_png, write_png16
 from station.process.masks import MaskCheckSettings, MaskSettings, Matte, check_masks, compute_matte
+from station.process.photometry import FlatField, FlatFieldSettings, exposure_to_plate, fit_flat_field
 from station.scanfolder import ManifestEntry, ScanFolder
 
 
@@ -40,6 +43,9 @@ class ProcessSettings:
     use_chart: bool = True  # correct colour against a ColorChecker found in a plate
     max_chart_delta_e: float = 6.0  # a chart fit worse than this is ignored (mis-located, too small)
     training_width: int | None = None  # images/ and masks/ are area-averaged down to this width; None: as developed
+    flat_field: bool = True  # measure the lens's vignetting on the plates and divide it out
+    flat_field_fit: FlatFieldSettings = FlatFieldSettings()
+    exposure_to_plate: bool = True  # scale each shot to its ring's plate on the backdrop (shutter scatter)
 
     def __post_init__(self) -> None:
         if self.training_width is not None and self.training_width < 1:
@@ -54,7 +60,8 @@ class FrameReport:
     azimuth_deg: float
     flags: list[str] = field(default_factory=list)
     clipped_fraction: float | None = None
-    exposure_scale: float | None = None
+    exposure_scale: float | None = None  # from the manifest's exposure time and ISO
+    plate_gain: float | None = None  # then to the ring's plate on the backdrop: the shutter's own error
     mask_area_fraction: float | None = None
 
 
@@ -67,6 +74,8 @@ class DevelopReport:
     plates: dict[float, str]  # elevation -> stem of the developed plate in images_linear/
     seconds: float
     matte_seconds: float = 0.0  # of `seconds`, the share spent cutting and unmixing the mattes
+    flat_field: FlatField = FlatField()  # the lens's vignetting as measured on the plates (none: not measured)
+    vignetting_stops: float | None = None  # the light it says the corners lose; None: not measured
 
     @property
     def usable_shots(self) -> list[FrameReport]:
@@ -100,11 +109,16 @@ def flag_implausible_masks(
 
 def training_matte(
     shot: np.ndarray, plate: np.ndarray, settings: ProcessSettings,
-    silhouette: np.ndarray | None = None, roofed: np.ndarray | None = None,
+    silhouette: np.ndarray | None = None, roofed: np.ndarray | None = None, flat: FlatField = FlatField(),
 ) -> Matte:
     """The matte a developed shot trains with: cut at the developed resolution, then averaged down to the
-    training width (the first cut and the cut across rings alike)."""
+    training width (the first cut and the cut across rings alike).
+
+    The cut sees the light as the sensor got it (the matte's noise model is photon noise against the plate's
+    level); only the stone's colour is flat-fielded, by `flat`.
+    """
     matte = compute_matte(shot, plate, settings.masks, silhouette, roofed)
+    matte = Matte(matte.alpha, flat.correct(matte.foreground))
     return matte if settings.training_width is None else matte.downscaled(settings.training_width)
 
 
@@ -176,11 +190,14 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
             developed_plates[entry.elevation_deg], plate_stems[entry.elevation_deg] = frame, Path(entry.file).stem
     if not developed_plates:
         raise ScanFolderError(f"{scan.root}: no plate frame could be developed")
+    flat = FlatField()
+    if settings.flat_field:
+        flat = fit_flat_field([p.linear for p in developed_plates.values()], settings.flat_field_fit)
     correction, colour_source, chart_de = None, next(iter(developed_plates.values())).matrix_source, None
     if settings.use_chart:
         for plate in developed_plates.values():
             try:
-                fit = locate_and_fit_chart(plate.linear)
+                fit = locate_and_fit_chart(flat.correct(plate.linear))
             except ChartNotFoundError:
                 continue
             if fit.delta_e_after <= settings.max_chart_delta_e and fit.delta_e_after < fit.delta_e_before:
@@ -203,9 +220,13 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         if abs(plate_elev - entry.elevation_deg) > 1e-3:
             report.flags.append(f"no_plate: none at {entry.elevation_deg} deg, masked against {plate_elev} deg")
         linear = frame.linear if correction is None else np.clip(frame.linear @ correction.T, 0.0, None)
+        if settings.exposure_to_plate and abs(plate_elev - entry.elevation_deg) <= 1e-3:
+            gain = exposure_to_plate(linear, plate_linear[plate_elev])
+            linear *= np.float32(gain)
+            report.plate_gain = gain
         stem = Path(entry.file).stem
         started = time.perf_counter()
-        matte = training_matte(linear, plate_linear[plate_elev], settings)
+        matte = training_matte(linear, plate_linear[plate_elev], settings, flat=flat)
         matte_seconds += time.perf_counter() - started
         mask = matte.mask
         write_training_view(scan, stem, matte)
@@ -223,4 +244,6 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         plates=plate_stems,
         seconds=time.perf_counter() - start,
         matte_seconds=matte_seconds,
+        flat_field=flat,
+        vignetting_stops=flat.corner_stops if settings.flat_field else None,
     )

@@ -25,8 +25,9 @@ from station.errors import BadInputError, ScanFolderError, StationError
 from station.formats.transforms import PinholeCamera
 from station.process import sfm
 from station.process.colmap_export import colmap_model, write_colmap_model
-from station.process.images_io import read_exr, write_exr_half
+from station.process.images_io import read_exr, read_png16, write_exr_half, write_png16
 from station.process.lens import Lens, Undistortion, displacement_px, lens_from_colmap, undistortion
+from station.process.photometry import ring_gains
 from station.process.rig_model import PosedView, RigModel, apply_similarity, calibrate_rig, rotation_angle_deg, umeyama
 from station.process.transforms import PosedFrame, Transforms, read_transforms, write_transforms
 from station.process.visual_hull import carve, ring_frame
@@ -53,6 +54,8 @@ class PoseSettings:
     # lowers the worst camera error.
     fallback_affine_sift: bool = True
     min_undistort_px: float = 0.1  # distortion moving no border pixel further than this is left in (no resample)
+    normalise_exposure: bool = True  # bring every ring to one exposure by the stone points they share
+    min_exposure_change: float = 0.005  # a ring gain closer to 1 than this is left alone (no re-encode)
 
 
 @dataclass
@@ -69,6 +72,7 @@ class PoseReport:
     cross_check: dict = field(default_factory=dict)
     reprojection_by_ring_px: dict[str, float] = field(default_factory=dict)  # elevation (or "all") -> mean error
     lens: dict = field(default_factory=dict)  # the self-calibrated camera of the developed images, and its fate
+    ring_gains: dict[str, float] = field(default_factory=dict)  # elevation -> exposure gain applied to its images
     flags: list[str] = field(default_factory=list)
     seconds: float = 0.0
 
@@ -195,6 +199,8 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
         report.reprojection_error_px = float(rec.compute_mean_reprojection_error()) if rec.num_points3D() else 0.0
         report.mean_track_length = float(rec.compute_mean_track_length()) if rec.num_points3D() else 0.0
         report.reprojection_by_ring_px = _ring_errors(rec, refs)
+        if settings.normalise_exposure and rec.num_points3D() and all(r.elevation_deg is not None for r in refs):
+            report.ring_gains = _normalise_ring_exposure(scan, rec, refs, settings.min_exposure_change)
         lens, undistort = _lens_of(rec, settings, flags)
         report.lens = {"intrinsics": vars(lens.intrinsics), **lens.to_dict(), "max_shift_px": displacement_px(lens),
                        "undistorted": undistort is not None, "self_calibration": note or "refined"}
@@ -277,6 +283,40 @@ def _ring_errors(rec: pycolmap.Reconstruction, refs: list[FrameRef]) -> dict[str
         if ref.name in errors:
             rings.setdefault("all" if ref.elevation_deg is None else f"{ref.elevation_deg:g}", []).append(errors[ref.name])
     return {ring: float(np.concatenate(e).mean()) for ring, e in rings.items() if sum(map(len, e))}
+
+
+def _normalise_ring_exposure(scan: ScanFolder, rec: pycolmap.Reconstruction, refs: list[FrameRef],
+                             min_change: float) -> dict[str, float]:
+    """Scale each ring's images (and its linear EXRs, plates too) by the gain its shared stone points ask for.
+
+    The develop already matched each shot to its ring's plate; what is left is one exposure error per plate.
+    """
+    ring_of = {r.name: f"{r.elevation_deg:g}" for r in refs}
+    azimuth_of = {r.name: float(r.azimuth_deg) for r in refs}
+    observations = []
+    for image in rec.images.values():
+        if not image.has_pose or image.name not in ring_of:
+            continue
+        luminance = read_png16(scan.images_dir / image.name).mean(axis=2)  # [H, W]
+        box = cv2.blur(luminance, (3, 3))
+        for p in image.points2D:
+            if p.has_point3D():
+                x, y = (min(max(int(v), 0), n - 1) for v, n in zip(p.xy, box.shape[::-1]))
+                if box[y, x] > 1e-3:
+                    observations.append((p.point3D_id, ring_of[image.name], azimuth_of[image.name],
+                                         float(np.log(box[y, x]))))
+    gains = {ring: gain if abs(gain - 1.0) > min_change else 1.0 for ring, gain in ring_gains(observations).items()}
+    for ref in refs:
+        gain = gains.get(ring_of[ref.name], 1.0)
+        if gain != 1.0:
+            path = scan.images_dir / ref.name
+            write_png16(path, read_png16(path) * np.float32(gain))
+    for entry in scan.read_manifest():
+        path = scan.images_linear_dir / f"{Path(entry.file).stem}.exr"
+        gain = gains.get(f"{entry.elevation_deg:g}", 1.0)
+        if gain != 1.0 and path.is_file():
+            write_exr_half(path, read_exr(path) * np.float32(gain))
+    return gains
 
 
 def _lens_of(rec: pycolmap.Reconstruction, settings: PoseSettings, flags: list[str]) -> tuple[Lens, Undistortion | None]:
