@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from batch_support import BATCH, TINY_RUN, batch, copy_scans, events, redone_stages, shoot, status, temp_files, verify_scan
+from batch_support import BATCH, TINY_RUN, batch, copy_scans, events, redone_stages, status, temp_files, verify_scan
 from station.batch.store import JobStore
 
 pytestmark = pytest.mark.slow
@@ -32,9 +32,8 @@ SEED = 20261123
 
 
 @pytest.fixture(scope="module")
-def shot(tmp_path_factory) -> list[Path]:
-    root = tmp_path_factory.mktemp("shot")
-    return [shoot(root / f"stone{stone}", stone) for stone in STONES]
+def shot(tiny_shot) -> list[Path]:
+    return [tiny_shot(stone) for stone in STONES]
 
 
 def _start_runner(queue: Path, log: Path) -> subprocess.Popen:
@@ -201,9 +200,9 @@ def _alive(pids: set[int]) -> set[int]:
             Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"}
 
 
-def test_a_stalled_runners_stage_stops_itself_and_the_runner_records_nothing_when_it_wakes(tmp_path):
+def test_a_stalled_runners_stage_stops_itself_and_the_runner_records_nothing_when_it_wakes(tiny_shot, tmp_path):
     """SIGSTOP runner A mid-training; B takes the job over once A's lease runs out; SIGCONT A."""
-    scan = shoot(tmp_path / "stone", "2")
+    scan = copy_scans([tiny_shot("2")], tmp_path)[0]
     queue = tmp_path / "queue.sqlite"
     assert batch("add", scan, "--queue", queue).returncode == 0
     run = [*BATCH, "run", "--preset", "tiny", "--lease", "3", "--poll", "0.2", "--backoff", "0", "--queue", str(queue)]

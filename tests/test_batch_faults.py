@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from batch_support import TINY_RUN, batch, events, shoot, status, verify_scan
+from batch_support import TINY_RUN, batch, events, status, verify_scan
 from station.scanfolder import ScanFolder, sha256_file
 
 pytestmark = pytest.mark.slow
@@ -31,8 +31,8 @@ FAULT_HOOKS = Path(__file__).parent / "fault_hooks"  # its sitecustomize injects
 
 
 @pytest.fixture(scope="module")
-def shot(tmp_path_factory) -> Path:
-    return shoot(tmp_path_factory.mktemp("shot") / "stone", "5")
+def shot(tiny_shot) -> Path:
+    return tiny_shot("5")
 
 
 def corrupt_raw(scan: Path, raw: str) -> None:

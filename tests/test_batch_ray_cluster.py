@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from batch_support import BATCH, batch, copy_scans, events, redone_stages, shoot, status, verify_scan
+from batch_support import BATCH, batch, copy_scans, events, redone_stages, status, verify_scan
 from station.batch.ray_executor import Node, choose_nodes, ray_log_path
 from station.batch.store import JobStore
 
@@ -35,9 +35,8 @@ RAY_LINES = ("(raylet)", "[state-dump]", "worker.py", "Ray cluster")  # what lea
 
 
 @pytest.fixture(scope="module")
-def shot(tmp_path_factory) -> list[Path]:
-    root = tmp_path_factory.mktemp("shot")
-    return [shoot(root / f"stone{stone}", stone) for stone in STONES]
+def shot(tiny_shot) -> list[Path]:
+    return [tiny_shot(stone) for stone in STONES]
 
 
 @pytest.fixture(scope="module")

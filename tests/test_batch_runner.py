@@ -15,7 +15,6 @@ from pathlib import Path
 
 import pytest
 
-from batch_support import shoot
 from station.batch.executors import LocalExecutor
 from station.batch.runner import DEFAULT_BUDGETS, BatchSettings, StageBudget, run_batch, run_job
 from station.batch.stages import STAGES, read_record, scan_stage_key
@@ -29,8 +28,8 @@ SETTINGS = BatchSettings(preset="tiny", poll_seconds=0.1)
 
 
 @pytest.fixture(scope="module")
-def shot(tmp_path_factory) -> Path:
-    return shoot(tmp_path_factory.mktemp("shot") / "stone", "6")
+def shot(tiny_shot) -> Path:
+    return tiny_shot("6")
 
 
 @pytest.fixture
@@ -97,11 +96,14 @@ def test_the_safer_preset_halves_step_sizes_gaussian_budget_and_resolution():
 
 def test_the_training_width_reaches_the_process_stage_as_a_parameter_of_its_run(queued):
     store, scan = queued
-    run_batch(store, replace(SETTINGS, training_width=80), LocalExecutor())
+    # training is not under test: a free-space budget no disk meets parks the scan before it starts
+    budgets = {**DEFAULT_BUDGETS, "train": StageBudget(seconds=DEFAULT_BUDGETS["train"].seconds, free_mb=1e12)}
+    run_batch(store, replace(SETTINGS, training_width=80, budgets=budgets), LocalExecutor())
 
     images = sorted(ScanFolder(scan).images_dir.glob("*.png"))
     assert images and all(read_png16(path).shape[1] == 80 for path in images)  # the sensor is 160 wide
     job = store.get(scan)
+    assert (job.state, job.stage) == ("parked", "train")
     started = [json.loads(e["detail"]) for e in store.stage_events(job.id) if (e["stage"], e["event"]) == ("process", "started")]
     assert started and all(detail["training_width"] == 80 for detail in started)  # the params its key is made from
 
