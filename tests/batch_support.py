@@ -6,11 +6,15 @@ Everything here drives the real pipeline; nothing is mocked. A tiny scan is 2 x 
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import shutil
 import subprocess
 import sys
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +31,14 @@ from station.scanfolder import ScanFolder
 
 BATCH = [sys.executable, "-m", "station.cli_batch"]  # the same commands as `station batch`
 TINY_RUN = ["--preset", "tiny", "--lease", "2", "--poll", "0.2", "--backoff", "0"]
+
+
+@contextlib.contextmanager
+def one_ray_at_a_time() -> Iterator[None]:
+    """Hold the machine's one Ray slot: two Ray instances at once on two cores (xdist workers) starve each other."""
+    with open(Path(tempfile.gettempdir()) / f"station-tests-ray-{os.getuid()}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
 
 
 def shoot(out: Path, stone: str) -> Path:

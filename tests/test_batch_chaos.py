@@ -18,7 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from batch_support import BATCH, TINY_RUN, batch, copy_scans, events, redone_stages, status, temp_files, verify_scan
+from batch_support import (BATCH, TINY_RUN, batch, copy_scans, events, one_ray_at_a_time, redone_stages, status,
+                           temp_files, verify_scan)
 from station.batch.store import JobStore
 
 pytestmark = pytest.mark.slow
@@ -165,7 +166,8 @@ def ray_run(shot, tmp_path_factory) -> dict:
     scans = copy_scans(shot, root / "scans")
     queue = root / "queue.sqlite"
     assert batch("add", *scans, "--queue", queue).returncode == 0
-    result = batch("run", "--executor", "ray", "--workers", "2", *TINY_RUN, "--queue", queue, timeout=500)
+    with one_ray_at_a_time():
+        result = batch("run", "--executor", "ray", "--workers", "2", *TINY_RUN, "--queue", queue, timeout=500)
     return {"scans": scans, "queue": queue, "result": result}
 
 

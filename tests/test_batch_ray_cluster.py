@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from batch_support import BATCH, batch, copy_scans, events, redone_stages, status, verify_scan
+from batch_support import BATCH, batch, copy_scans, events, one_ray_at_a_time, redone_stages, status, verify_scan
 from station.batch.ray_executor import Node, choose_nodes, ray_log_path
 from station.batch.store import JobStore
 
@@ -60,13 +60,14 @@ def cluster(ray_env):
     """A head and two 1-CPU worker nodes."""
     from ray.cluster_utils import Cluster
 
-    ray_cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
-    workers = [ray_cluster.add_node(num_cpus=1) for _ in range(2)]
-    try:
-        yield {"cluster": ray_cluster, "workers": workers, "env": ray_env,
-               "labels": {n.node_id[:12] for n in [ray_cluster.head_node, *workers]}}
-    finally:
-        ray_cluster.shutdown()
+    with one_ray_at_a_time():
+        ray_cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+        workers = [ray_cluster.add_node(num_cpus=1) for _ in range(2)]
+        try:
+            yield {"cluster": ray_cluster, "workers": workers, "env": ray_env,
+                   "labels": {n.node_id[:12] for n in [ray_cluster.head_node, *workers]}}
+        finally:
+            ray_cluster.shutdown()
 
 
 def _node_of(label: str) -> str:

@@ -242,8 +242,8 @@ def _driver_main(address: str | None, num_cpus: int | None, log_path: str, key: 
 
         if address:
             ray.init(address=address, log_to_driver=False)
-        else:
-            ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+        else:  # "local": a new instance, never a cluster that `ray start` left running on this machine
+            ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
         driver = _Driver(ray)
         resources = ray.cluster_resources()
     except Exception as exc:  # noqa: BLE001 - sent back whole: the runner turns it into a clear error
