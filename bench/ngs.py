@@ -71,10 +71,14 @@ def shoot_and_process(root: Path, stone: str | None, size: str) -> Path:
 
 
 def train_one(source: Path, work: Path, name: str, cfg: TrainConfig) -> Path:
-    """Train `cfg` on a copy of the posed part of `source`; returns the run's scan folder."""
+    """Train `cfg` on a copy of the posed part of `source`; returns the run's scan folder. A run already
+    finished there is kept, and a killed one resumes from its checkpoint."""
     run = work / name.replace(" ", "_").replace(":", "")
+    if (run / "model" / "train_metrics.json").is_file():
+        return run
     for sub in ("images", "masks", "poses"):
-        shutil.copytree(source / sub, run / sub)
+        if not (run / sub).is_dir():
+            shutil.copytree(source / sub, run / sub)
     scene = load_scene(run, downscale=cfg.downscale, seed=cfg.seed)
     trainer = Trainer(scene, cfg, run / "model")
     write_model(trainer, trainer.run())

@@ -31,12 +31,9 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from ngs import curve_svg, score
-from station.ngs.dataset import load_scene
+from ngs import curve_svg, score, train_one
 from station.ngs.infill import Infill
-from station.ngs.pipeline import write_model
 from station.ngs.presets import make_config
-from station.ngs.trainer import TrainConfig, Trainer
 from station.process.importers import ImportSettings, import_dataset
 from station.scanfolder import atomic_write_bytes, atomic_write_json
 
@@ -79,18 +76,6 @@ def import_real(name: str, dataset: RealDataset, work: Path) -> Path:
     return out
 
 
-def train_kept(source: Path, run: Path, cfg: TrainConfig) -> Path:
-    """Train `cfg` on the posed views of `source` in `run`, unless a finished model is already there."""
-    if (run / "model" / "train_metrics.json").is_file():
-        return run
-    for sub in ("images", "masks", "poses"):
-        if not (run / sub).is_dir():
-            shutil.copytree(source / sub, run / sub)
-    trainer = Trainer(load_scene(run, downscale=cfg.downscale, seed=cfg.seed), cfg, run / "model")
-    write_model(trainer, trainer.run())
-    return run
-
-
 def run_dataset(name: str, dataset: RealDataset, methods: list[str], variants: list[str], preset: str,
                 downscale: int, seed: int, work: Path) -> dict | None:
     source = import_real(name, dataset, work)
@@ -100,7 +85,7 @@ def run_dataset(name: str, dataset: RealDataset, methods: list[str], variants: l
     trained = {}
     for label, cfg in runs.items():
         started = time.perf_counter()
-        trained[label] = train_kept(source, work / f"{name}-runs" / label.replace(", ", "-"), cfg)
+        trained[label] = train_one(source, work / f"{name}-runs", label, cfg)
         print(f"{name} {label}: trained in {time.perf_counter() - started:.0f} s", file=sys.stderr)
     if "ngs" not in trained:
         print(f"{name}: trained only; SOS needs the NGS run's infill, so scoring waits for a run with ngs",
