@@ -85,15 +85,22 @@ def sos_at_plan(run: dict) -> str:
 
 def ngs_section(name: str, data: dict) -> Section:
     rows = [[run, num(r["psnr"], 2), num(r["psnr_star"], 2), num(r["ssim"], 4), num(r["sos"]), sos_at_plan(r),
-             num(r["num_gaussians"]), f"{num(r['steps'])} ({num(r['planned_steps'])})", num(r["train_seconds"], 0)]
+             num(r["num_gaussians"]), num(r.get("num_infill")), f"{num(r['steps'])} ({num(r['planned_steps'])})",
+             num(r["train_seconds"], 0)]
             for run, r in data["methods"].items()]
     lines = [f"Scan: {data['scan']}; presets {', '.join(data['presets'])}; training seed {data['seed']}. "
              f"Peer: {data['peer']}. SOS at the plan is the held-out SOS at the planned step count against the "
              "run's own training infill, where the run has one.", ""]
-    lines += table(["run", "PSNR dB", "PSNR* dB", "SSIM", "SOS", "SOS at the plan", "Gaussians", "steps (planned)",
-                    "train s"], rows)
+    lines += table(["run", "PSNR dB", "PSNR* dB", "SSIM", "SOS", "SOS at the plan", "Gaussians", "infill scored",
+                    "steps (planned)", "train s"], rows)
     lines.append(f"NGS's held-out PSNR below the best of 3DGS, 3DGS + alpha and NGS: "
                  f"{data['ngs_psnr_gap_to_best_db']:.3f} dB.")
+    bar = data.get("ngs_first_at_bar")
+    if bar:
+        lines.append(f"NGS first at SOS ≥ {bar['sos_bar']} with PSNR within {bar['psnr_margin_db']} dB of 3DGS: step "
+                     f"{bar['step']}, {bar['seconds']:.0f} s (PSNR {bar['psnr']:.2f} dB, SOS {bar['sos']:.3f}).")
+    elif "ngs_first_at_bar" in data:
+        lines.append("NGS never reached SOS ≥ 0.85 with PSNR within 0.3 dB of 3DGS in this run.")
     coarse = data.get("coarse_start_against_full_resolution")
     if coarse:
         lines.append(f"Coarse start against full resolution throughout: seconds per step ×{coarse['seconds_per_step_ratio']}, "

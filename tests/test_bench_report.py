@@ -27,8 +27,9 @@ def results_copy(tmp_path: Path) -> Path:
     copy.mkdir(parents=True)
     for path in RESULTS.glob("*.json"):
         shutil.copy(path, copy)
-    for path in RESULTS.glob("ngs*.svg"):  # drawn by bench/ngs.py itself, not by the report
-        shutil.copy(path, copy)
+    for pattern in ("ngs*.svg", "real_*.svg"):  # drawn by bench/ngs.py and bench/real.py, not by the report
+        for path in RESULTS.glob(pattern):
+            shutil.copy(path, copy)
     return copy
 
 

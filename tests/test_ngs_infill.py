@@ -63,8 +63,19 @@ TINY = InfillConfig(levels=(8, 16), erosion_iters=(2, 2), prune_downscale=1)
 def test_depth_pruning_marks_noise_in_front_of_the_surface_and_keeps_noise_behind_it():
     cams = ring_cameras()
     noise = noise_at([[0.0, 0.0, 0.0], [0.0, 0.0, 0.3], [2.0, 0.5, 0.2], [0.3, -1.6, 0.1]])
-    marked = depth_prune_mask(sphere_surface(), noise, cams)
+    marked = depth_prune_mask(sphere_surface(), noise, cams, surface_alpha=0.5)
     assert marked.tolist() == [False, False, True, True]
+
+
+def test_noise_inside_a_diffuse_surface_layer_is_pruned_unless_the_surface_starts_at_its_first_faint_gaussian():
+    """DTU's dark cavities: faint surface Gaussians lie in front of where the surface turns opaque."""
+    cams = ring_cameras()
+    faint = sphere_surface(radius=1.6)
+    faint["opacities"] = torch.full_like(faint["opacities"], 0.01)
+    noise = noise_at([[0.0, 0.0, 1.4], [0.0, 0.0, 0.0]])  # between the shells; deep inside both
+    surface = join(faint, sphere_surface())
+    assert depth_prune_mask(surface, noise, cams, surface_alpha=0.5).tolist() == [True, False]
+    assert depth_prune_mask(surface, noise, cams, surface_alpha=1 / 255).tolist() == [False, False]
 
 
 def test_infill_of_a_sphere_lies_strictly_inside_it():

@@ -346,10 +346,11 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
 
 @njit(parallel=True, fastmath=True, cache=True)
 def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid, extent_y, width, height,
-                     fast):
-    """Per pixel, the depth of the Gaussian whose compositing takes T to 0.5 or below -> [H, W] (+inf where
-    T stays above 0.5). Same skip and stop rules as rasterize_fwd; forward only (meshing, not training)."""
+                     alpha_level, fast):
+    """Per pixel, the depth of the Gaussian whose compositing takes alpha to `alpha_level` or above -> [H, W]
+    (+inf where it never does). Same skip and stop rules as rasterize_fwd; forward only (meshing, pruning)."""
     dt = means2d.dtype
+    t_level = 1.0 - alpha_level
     tw = (width + TILE - 1) // TILE
     ntiles = tile_offsets.shape[0] - 1
     out = np.full((height, width), np.inf, dt)
@@ -376,9 +377,9 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
                 valid = (a >= ALPHA_MIN) & (live[p] > ZERO)
                 next_t = T[p] * (ONE - a)
                 take = valid & (next_t > T_STOP)
-                median[p] = z if take & (next_t <= HALF) & (T[p] > HALF) else median[p]
+                median[p] = z if take & (next_t <= t_level) & (T[p] > t_level) else median[p]
                 T[p] = next_t if take else T[p]
-                live[p] = ZERO if (valid and not take) or T[p] <= HALF else live[p]
+                live[p] = ZERO if (valid and not take) or T[p] <= t_level else live[p]
             if k % 8 == 7:
                 s = 0.0
                 for p in range(TILE_PIX):

@@ -17,7 +17,7 @@ from scipy.ndimage import binary_erosion
 from scipy.spatial import ConvexHull, QhullError
 
 from station.errors import BadInputError
-from station.ngs.raster import pixel_contributors
+from station.ngs.raster import median_depth, pixel_contributors
 
 RGBCMY = torch.tensor(
     [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 1.0, 1.0], [1.0, 0, 1.0], [1.0, 1.0, 0]]
@@ -32,6 +32,9 @@ class InfillConfig:
     finer_opacity: float = 0.005  # ... finer levels
     pad: float = 0.05  # bounding box padding per side
     prune_downscale: int = 4  # depth pruning renders at 1/4 resolution
+    # Where the surface starts for depth pruning: its accumulated alpha reaching this. The paper's first
+    # faint surface Gaussian (1/255) kept noise inside the diffuse layer of DTU's dark cavities (docs/real-photos.md).
+    surface_alpha: float = 0.5
     depth_prune: bool = True
     erosion: bool = True
 
@@ -133,27 +136,28 @@ def candidate_cells(covered: np.ndarray, origin: np.ndarray, h: float, planes: n
     return np.concatenate(found) if found else np.zeros((0, 3), dtype=np.int64)
 
 
-def depth_prune_mask(surface: dict[str, torch.Tensor], noise: dict[str, torch.Tensor], cameras: list[Camera]) -> torch.Tensor:
-    """[M] bool: noise some view sees before the first surface Gaussian, or with no surface."""
-    n = surface["means"].shape[0]
+def depth_prune_mask(surface: dict[str, torch.Tensor], noise: dict[str, torch.Tensor], cameras: list[Camera],
+                     surface_alpha: float) -> torch.Tensor:
+    """[M] bool: noise some view sees in front of the surface, or where there is no surface.
+
+    The surface starts where its own accumulated alpha reaches `surface_alpha`; at 1/255 that is the
+    paper's first surface Gaussian. The noise's 0.5-1% opacity never stops a ray before the surface does."""
     m = noise["means"].shape[0]
-    marked = torch.zeros(m, dtype=torch.bool, device=surface["means"].device)
+    marked = torch.zeros(m, dtype=torch.bool, device=noise["means"].device)
     if m == 0:
         return marked
-    joined = {key: torch.cat([surface[key].detach(), noise[key]]) for key in ("means", "quats", "scales", "opacities")}
+    flat = {key: surface[key].detach() for key in ("means", "quats", "scales", "opacities")}
     for cam in cameras:
+        surface_z = median_depth(flat["means"], flat["quats"], flat["scales"], flat["opacities"], cam.viewmat, cam.K,
+                                 cam.width, cam.height, alpha_level=surface_alpha).reshape(-1).to(marked.device)
         offsets, ids = pixel_contributors(
-            joined["means"], joined["quats"], joined["scales"], joined["opacities"], cam.viewmat, cam.K, cam.width, cam.height
+            noise["means"], noise["quats"], noise["scales"], noise["opacities"], cam.viewmat, cam.K, cam.width, cam.height
         )  # [P+1], [E]
         offsets, ids = offsets.to(marked.device), ids.to(marked.device)
-        counts = offsets[1:] - offsets[:-1]  # [P]
-        pixel = torch.repeat_interleave(torch.arange(len(counts), device=marked.device), counts)  # [E]
-        rank = torch.arange(len(ids), device=marked.device) - offsets[pixel]  # position in the pixel's list
-        is_surface = ids < n
-        first_surface = torch.full((len(counts),), len(ids) + 1, dtype=torch.long, device=marked.device)
-        first_surface.scatter_reduce_(0, pixel[is_surface], rank[is_surface], reduce="amin")
-        in_front = ~is_surface & (rank < first_surface[pixel])
-        marked[ids[in_front] - n] = True
+        pixel = torch.repeat_interleave(torch.arange(len(offsets) - 1, device=marked.device), offsets[1:] - offsets[:-1])
+        noise_z = noise["means"] @ cam.viewmat[2, :3].to(noise["means"]) + cam.viewmat[2, 3].to(noise["means"])  # [M]
+        in_front = noise_z[ids] < surface_z[pixel]
+        marked[ids[in_front]] = True
     return marked
 
 
@@ -193,7 +197,7 @@ def build_infill(surface: dict[str, torch.Tensor], cameras: list[Camera], cfg: I
         )
         if cfg.depth_prune and len(level):
             opacity = cfg.first_opacity if index == 0 else cfg.finer_opacity
-            keep = ~depth_prune_mask(surface, level.gaussians(opacity), small)
+            keep = ~depth_prune_mask(surface, level.gaussians(opacity), small, cfg.surface_alpha)
             level, cells = level.select(keep), cells[keep.cpu().numpy()]
         grid = covered.copy()
         grid[tuple(cells.T)] = True

@@ -301,10 +301,10 @@ def _cpu_binned(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
 
 def median_depth(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor, width: int,
-    height: int, *, near_plane: float = 0.01, backend: Backend = "auto",
+    height: int, *, alpha_level: float = 0.5, near_plane: float = 0.01, backend: Backend = "auto",
 ) -> Tensor:
-    """Per pixel, the camera z of the Gaussian at which the rendered alpha reaches 0.5 -> [H, W], +inf where
-    it never does.
+    """Per pixel, the camera z of the Gaussian at which the rendered alpha reaches `alpha_level` (0.5: the
+    median) -> [H, W], +inf where it never does.
 
     Expected depth blends every Gaussian the ray passes, so on a splat surface several Gaussians deep it
     lies behind the first opaque layer (about 1.4 mm on our simulated stones); the median sits on it.
@@ -316,11 +316,11 @@ def median_depth(
         if chosen != "cpu":
             m2, conics, depths, radii = ref.project(means, quats, scales, viewmat[None], K[None], width, height,
                                                     near_plane, 1e10)
-            return ref.median_depth(m2[0], conics[0], opacities, depths[0], radii[0], width, height)
+            return ref.median_depth(m2[0], conics[0], opacities, depths[0], radii[0], width, height, alpha_level)
         m2, conics, depths, opac, bins = _cpu_binned(means, quats, scales, opacities, viewmat, K, width, height,
                                                      near_plane)
         out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], bins[4], width, height,
-                                        means.dtype == torch.float32)
+                                        alpha_level, means.dtype == torch.float32)
         return torch.from_numpy(out).to(means.device)
 
 
