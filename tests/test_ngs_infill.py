@@ -78,6 +78,14 @@ def test_noise_inside_a_diffuse_surface_layer_is_pruned_unless_the_surface_start
     assert depth_prune_mask(surface, noise, cams, surface_alpha=1 / 255).tolist() == [False, False]
 
 
+def test_noise_behind_a_still_half_transparent_surface_is_kept_for_the_noise_to_make_it_opaque():
+    cams = ring_cameras()
+    see_through = sphere_surface()
+    see_through["opacities"] = torch.full_like(see_through["opacities"], 0.05)
+    noise = noise_at([[0.0, 0.0, 0.0], [0.0, 0.0, 1.4]])  # inside; outside in front
+    assert depth_prune_mask(see_through, noise, cams, surface_alpha=0.5).tolist() == [False, True]
+
+
 def test_infill_of_a_sphere_lies_strictly_inside_it():
     infill = build_infill(sphere_surface(), ring_cameras(), TINY)
     assert len(infill) > 20

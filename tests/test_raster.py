@@ -191,6 +191,18 @@ def test_median_depth_agrees_with_the_reference_and_is_infinite_where_alpha_stay
     assert torch.equal(torch.isfinite(cpu), alpha[0, ..., 0] >= 0.5)
 
 
+def test_depth_at_a_per_pixel_alpha_level_agrees_with_the_reference():
+    scene = random_scene(200, 48, 40, sh_degree=None, seed=6, dtype=torch.float64)
+    args = [scene[k] for k in ("means", "quats", "scales", "opacities")] + [scene["viewmats"][0], scene["Ks"][0], 48, 40]
+    levels = torch.linspace(0.01, 0.9, 48 * 40, dtype=torch.float64).reshape(40, 48)
+    cpu = median_depth(*args, alpha_level=levels, backend="cpu")
+    reference = median_depth(*args, alpha_level=levels, backend="torch")
+    assert torch.isfinite(cpu).any() and torch.isinf(cpu).any()
+    assert torch.equal(torch.isinf(cpu), torch.isinf(reference))
+    torch.testing.assert_close(cpu[torch.isfinite(cpu)], reference[torch.isfinite(reference)], atol=1e-9, rtol=0)
+    assert not torch.equal(torch.isfinite(cpu), torch.isfinite(median_depth(*args, backend="cpu")))
+
+
 def test_median_depth_sits_on_the_first_opaque_layer_where_expected_depth_does_not():
     """Two stacked layers of flat Gaussians at z = 4 and z = 4.05: the median is on the front one."""
     xs, ys = torch.meshgrid(torch.linspace(-0.6, 0.6, 13), torch.linspace(-0.6, 0.6, 13), indexing="xy")

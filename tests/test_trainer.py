@@ -13,7 +13,7 @@ import torch
 
 from station.errors import BadInputError, TrainingError
 from station.ngs.dataset import OPENGL_TO_OPENCV, downscaled_view, load_scene
-from station.ngs.conventions import rgb_to_sh
+from station.ngs.conventions import ALPHA_MIN, rgb_to_sh
 from station.ngs.infill import InfillConfig
 from station.ngs.losses import LossConfig, alpha_losses
 from station.ngs.ngs_schedule import NGSConfig
@@ -31,7 +31,8 @@ from test_sos import write_inria_ply
 
 TINY = TrainConfig(
     method="ngs", steps=60, sh_degree=1, checkpoint_every=20, seed=3, densify=DensifyConfig(max_gaussians=1500),
-    ngs=NGSConfig(infill=InfillConfig(levels=(8, 16), erosion_iters=(1, 2), prune_downscale=1)),
+    # A surface a dozen steps old is a diffuse cloud whose half-alpha depth lies deep inside: the paper's rule.
+    ngs=NGSConfig(infill=InfillConfig(levels=(8, 16), erosion_iters=(1, 2), prune_downscale=1, surface_alpha=ALPHA_MIN)),
 )
 
 

@@ -347,10 +347,10 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
 @njit(parallel=True, fastmath=True, cache=True)
 def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid, extent_y, width, height,
                      alpha_level, fast):
-    """Per pixel, the depth of the Gaussian whose compositing takes alpha to `alpha_level` or above -> [H, W]
-    (+inf where it never does). Same skip and stop rules as rasterize_fwd; forward only (meshing, pruning)."""
+    """Per pixel, the depth of the Gaussian whose compositing takes alpha to that pixel's `alpha_level` [H, W] or
+    above -> [H, W] (+inf where it never does). Same skip and stop rules as rasterize_fwd; forward only (meshing,
+    pruning)."""
     dt = means2d.dtype
-    t_level = 1.0 - alpha_level
     tw = (width + TILE - 1) // TILE
     ntiles = tile_offsets.shape[0] - 1
     out = np.full((height, width), np.inf, dt)
@@ -364,8 +364,11 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
+        t_level = np.ones(TILE_PIX, dt)
         for p in range(TILE_PIX):
             live[p] = 1.0 if inside[p] else 0.0
+            if inside[p]:
+                t_level[p] = ONE - alpha_level[int(py[p]), int(px[p])]
         for k in range(end - start):
             g = isect_gid[start + k]
             p0, p1 = _row_span(means2d[g, 1], extent_y[g], y0)
@@ -377,9 +380,9 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
                 valid = (a >= ALPHA_MIN) & (live[p] > ZERO)
                 next_t = T[p] * (ONE - a)
                 take = valid & (next_t > T_STOP)
-                median[p] = z if take & (next_t <= t_level) & (T[p] > t_level) else median[p]
+                median[p] = z if take & (next_t <= t_level[p]) & (T[p] > t_level[p]) else median[p]
                 T[p] = next_t if take else T[p]
-                live[p] = ZERO if (valid and not take) or T[p] <= t_level else live[p]
+                live[p] = ZERO if (valid and not take) or T[p] <= t_level[p] else live[p]
             if k % 8 == 7:
                 s = 0.0
                 for p in range(TILE_PIX):

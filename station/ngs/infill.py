@@ -17,7 +17,7 @@ from scipy.ndimage import binary_erosion
 from scipy.spatial import ConvexHull, QhullError
 
 from station.errors import BadInputError
-from station.ngs.raster import median_depth, pixel_contributors
+from station.ngs.raster import median_depth, pixel_contributors, rasterization
 
 RGBCMY = torch.tensor(
     [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 1.0, 1.0], [1.0, 0, 1.0], [1.0, 1.0, 0]]
@@ -32,8 +32,9 @@ class InfillConfig:
     finer_opacity: float = 0.005  # ... finer levels
     pad: float = 0.05  # bounding box padding per side
     prune_downscale: int = 4  # depth pruning renders at 1/4 resolution
-    # Where the surface starts for depth pruning: its accumulated alpha reaching this. The paper's first
-    # faint surface Gaussian (1/255) kept noise inside the diffuse layer of DTU's dark cavities (docs/real-photos.md).
+    # Where the surface starts for depth pruning: its accumulated alpha reaching this (or half its alpha, where
+    # less). The paper's first faint surface Gaussian (1/255) kept noise inside the diffuse layer of DTU's dark
+    # cavities (docs/real-photos.md).
     surface_alpha: float = 0.5
     depth_prune: bool = True
     erosion: bool = True
@@ -140,16 +141,21 @@ def depth_prune_mask(surface: dict[str, torch.Tensor], noise: dict[str, torch.Te
                      surface_alpha: float) -> torch.Tensor:
     """[M] bool: noise some view sees in front of the surface, or where there is no surface.
 
-    The surface starts where its own accumulated alpha reaches `surface_alpha`; at 1/255 that is the
-    paper's first surface Gaussian. The noise's 0.5-1% opacity never stops a ray before the surface does."""
+    The surface starts where its own accumulated alpha reaches `surface_alpha`, or half the pixel's surface
+    alpha where that is less: a still half-transparent surface keeps the noise behind most of its weight,
+    which is the noise's job to make opaque. At 1/255 it is the paper's first surface Gaussian."""
     m = noise["means"].shape[0]
     marked = torch.zeros(m, dtype=torch.bool, device=noise["means"].device)
     if m == 0:
         return marked
     flat = {key: surface[key].detach() for key in ("means", "quats", "scales", "opacities")}
     for cam in cameras:
-        surface_z = median_depth(flat["means"], flat["quats"], flat["scales"], flat["opacities"], cam.viewmat, cam.K,
-                                 cam.width, cam.height, alpha_level=surface_alpha).reshape(-1).to(marked.device)
+        args = (flat["means"], flat["quats"], flat["scales"], flat["opacities"])
+        _, alpha, _ = rasterization(*args, torch.zeros_like(flat["means"]), cam.viewmat[None], cam.K[None], cam.width,
+                                    cam.height)
+        level = torch.clamp(0.5 * alpha[0, ..., 0], max=surface_alpha)
+        surface_z = median_depth(*args, cam.viewmat, cam.K, cam.width, cam.height,
+                                 alpha_level=level).reshape(-1).to(marked.device)
         offsets, ids = pixel_contributors(
             noise["means"], noise["quats"], noise["scales"], noise["opacities"], cam.viewmat, cam.K, cam.width, cam.height
         )  # [P+1], [E]

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from station.errors import BadInputError
+from station.ngs.conventions import ALPHA_MIN
 from station.ngs.infill import InfillConfig
 from station.ngs.losses import LossConfig
 from station.ngs.ngs_schedule import NGSConfig
@@ -56,9 +57,11 @@ def tiny_preset() -> TrainConfig:
         downscale=1,
         checkpoint_every=50,
         densify=DensifyConfig(max_gaussians=2_000),
-        # Built at mid-run, once the few steps have given the surface some opacity, and eroded once:
-        # an earlier build or deeper erosion leaves a 16/32 grid empty, and export refuses an empty infill.
-        ngs=NGSConfig(build_at=0.5, freeze_at=0.55, infill=InfillConfig(levels=(16, 32), erosion_iters=(1, 1))),
+        # Built at mid-run, once the few steps have given the surface some opacity, eroded once, and pruned to
+        # the surface's first faint Gaussian (the paper's rule): an earlier build, deeper erosion or pruning
+        # to where a 150-step surface turns opaque leaves a 16/32 grid empty, and export refuses an empty infill.
+        ngs=NGSConfig(build_at=0.5, freeze_at=0.55,
+                      infill=InfillConfig(levels=(16, 32), erosion_iters=(1, 1), surface_alpha=ALPHA_MIN)),
     )
 
 

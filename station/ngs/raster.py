@@ -301,10 +301,10 @@ def _cpu_binned(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor,
 
 def median_depth(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor, width: int,
-    height: int, *, alpha_level: float = 0.5, near_plane: float = 0.01, backend: Backend = "auto",
+    height: int, *, alpha_level: float | Tensor = 0.5, near_plane: float = 0.01, backend: Backend = "auto",
 ) -> Tensor:
     """Per pixel, the camera z of the Gaussian at which the rendered alpha reaches `alpha_level` (0.5: the
-    median) -> [H, W], +inf where it never does.
+    median; or [H, W], one level a pixel) -> [H, W], +inf where it never does.
 
     Expected depth blends every Gaussian the ray passes, so on a splat surface several Gaussians deep it
     lies behind the first opaque layer (about 1.4 mm on our simulated stones); the median sits on it.
@@ -319,8 +319,10 @@ def median_depth(
             return ref.median_depth(m2[0], conics[0], opacities, depths[0], radii[0], width, height, alpha_level)
         m2, conics, depths, opac, bins = _cpu_binned(means, quats, scales, opacities, viewmat, K, width, height,
                                                      near_plane)
+        level = _host(alpha_level) if isinstance(alpha_level, Tensor) else alpha_level
+        levels = np.broadcast_to(np.asarray(level, m2.dtype), (height, width))
         out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], bins[4], width, height,
-                                        alpha_level, means.dtype == torch.float32)
+                                        np.ascontiguousarray(levels), means.dtype == torch.float32)
         return torch.from_numpy(out).to(means.device)
 
 

@@ -146,14 +146,15 @@ def rasterize(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor
 
 
 def median_depth(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
-                 width: int, height: int, alpha_level: float = 0.5) -> Tensor:
-    """One camera: depth of the Gaussian that takes alpha to `alpha_level` or above, per pixel [H, W]; +inf
-    where none does."""
+                 width: int, height: int, alpha_level: float | Tensor = 0.5) -> Tensor:
+    """One camera: depth of the Gaussian that takes alpha to `alpha_level` (a number, or [H, W] per pixel) or
+    above, per pixel [H, W]; +inf where none does."""
     with torch.no_grad():
         order, w, _ = _dense_weights(means2d, conics, opacities, depths, radii, width, height)
         if w.shape[1] == 0:
             return torch.full((height, width), math.inf, dtype=means2d.dtype, device=means2d.device)
-        crossed = torch.cumsum(w, dim=-1) >= alpha_level                      # [P, N]: 1 - T_after >= level
+        level = torch.as_tensor(alpha_level, dtype=w.dtype, device=w.device).expand(height, width).reshape(-1, 1)
+        crossed = torch.cumsum(w, dim=-1) >= level                            # [P, N]: 1 - T_after >= level
         first = torch.argmax(crossed.to(torch.int8), dim=-1)                   # [P]
         out = depths[order][first]
         out = torch.where(crossed.any(dim=-1), out, torch.full_like(out, math.inf))
