@@ -148,10 +148,9 @@ def depth_prune_mask(surface: dict[str, torch.Tensor], noise: dict[str, torch.Te
     marked = torch.zeros(m, dtype=torch.bool, device=noise["means"].device)
     if m == 0:
         return marked
-    flat = {key: surface[key].detach() for key in ("means", "quats", "scales", "opacities")}
+    args = tuple(surface[key].detach() for key in ("means", "quats", "scales", "opacities"))
     for cam in cameras:
-        args = (flat["means"], flat["quats"], flat["scales"], flat["opacities"])
-        _, alpha, _ = rasterization(*args, torch.zeros_like(flat["means"]), cam.viewmat[None], cam.K[None], cam.width,
+        _, alpha, _ = rasterization(*args, torch.zeros_like(args[0]), cam.viewmat[None], cam.K[None], cam.width,
                                     cam.height)
         level = torch.clamp(0.5 * alpha[0, ..., 0], max=surface_alpha)
         surface_z = median_depth(*args, cam.viewmat, cam.K, cam.width, cam.height,
