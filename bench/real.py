@@ -62,7 +62,8 @@ DATASETS = {
 
 VARIANTS = {  # further NGS runs, each one change that real photos may need and simulated stones did not
     "paced": lambda cfg: replace(cfg, densify=replace(cfg.densify, budget_ramp=0.5)),
-    "paper-prune": lambda cfg: replace(cfg, ngs=replace(cfg.ngs, infill=replace(cfg.ngs.infill, surface_alpha=ALPHA_MIN))),
+    "paper-prune": lambda cfg: replace(cfg, ngs=replace(cfg.ngs, infill=replace(cfg.ngs.infill,
+                                                                                surface_alpha=ALPHA_MIN))),
 }
 
 
