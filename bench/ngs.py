@@ -20,6 +20,7 @@ bench/results/ngs.json and, beside it, ngs.svg: held-out PSNR and SOS against tr
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import shutil
@@ -27,7 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import torch
@@ -72,9 +73,11 @@ def shoot_and_process(root: Path, stone: str | None, size: str) -> Path:
 
 def train_one(source: Path, work: Path, name: str, cfg: TrainConfig) -> Path:
     """Train `cfg` on a copy of the posed part of `source`; returns the run's scan folder. A run already
-    finished there is kept, and a killed one resumes from its checkpoint."""
+    finished there with the same config is kept (another config trains afresh), and a killed one resumes
+    from its checkpoint."""
     run = work / name.replace(" ", "_").replace(":", "")
-    if (run / "model" / "train_metrics.json").is_file():
+    finished = run / "model" / "train_metrics.json"
+    if finished.is_file() and json.loads(finished.read_text())["config"] == json.loads(json.dumps(asdict(cfg))):
         return run
     for sub in ("images", "masks", "poses"):
         if not (run / sub).is_dir():
