@@ -18,8 +18,11 @@ from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
 from typing import Callable, Protocol
 
+import math
+
 import numpy as np
-from scipy.ndimage import gaussian_filter, map_coordinates
+from numba import njit, prange
+from scipy.ndimage import gaussian_filter
 
 from sim.dng import dng_bytes
 from sim.lens import SimLens
@@ -246,17 +249,66 @@ def _barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def _box_down(samples: np.ndarray, h: int, w: int, s: int) -> np.ndarray:
-    """Mean over each pixel's s x s subsamples: [H*s * W*s, ...] -> [H, W, ...].
+    """Mean over each pixel's s x s subsamples: [H*s * W*s, ...] -> [H, W, ...] float32."""
+    flat = np.ascontiguousarray(samples.reshape(len(samples), -1), dtype=np.float32)
+    return _box_mean(flat, h, w, s).reshape(h, w, *samples.shape[1:])
 
-    Summing strided slices is several times faster than reshape().mean(axis=(1, 3)).
+
+@njit(parallel=True, cache=True)
+def _box_mean(samples, h, w, s):
+    out = np.zeros((h * w, samples.shape[1]), dtype=np.float32)
+    for row in prange(h):
+        for col in range(w):
+            for c in range(samples.shape[1]):
+                total = 0.0
+                for i in range(s):
+                    base = ((row * s + i) * w + col) * s
+                    for j in range(s):
+                        total += samples[base + j, c]
+                out[row * w + col, c] = total / (s * s)
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _backdrop_and_plate(eye, dirs, to_lab, backdrop_radius, backdrop_level, plate_radius, plate_level, occlusion):
+    """Radiance [R, 3] and distance [R] of each ray's first hit on the backdrop sphere or the plate disk.
+
+    The backdrop is a sphere about the origin, lit from within, with a gentle gradient fixed in the lab; the
+    plate is a grey disk at z=0 turning with the stone, darkened near the stone by its contact occlusion
+    (`occlusion` [G, G] over the plate, bilinear, edges held; [1, 1] of ones when the stone is away).
     """
-    grid = samples.reshape(h, s, w, s, *samples.shape[1:])
-    total = grid[:, 0, :, 0].copy()
-    for i in range(s):
-        for j in range(s):
-            if i or j:
-                total += grid[:, i, :, j]
-    return total / (s * s)
+    n = dirs.shape[0]
+    radiance = np.empty((n, 3), dtype=np.float32)
+    best = np.empty(n, dtype=np.float32)
+    ex, ey, ez = eye[0], eye[1], eye[2]
+    c = ex * ex + ey * ey + ez * ez - backdrop_radius * backdrop_radius
+    g = occlusion.shape[0]
+    for r in prange(n):
+        dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+        b = dx * ex + dy * ey + dz * ez
+        t = -b + math.sqrt(max(b * b - c, 0.0))
+        px, py, pz = ex + dx * t, ey + dy * t, ez + dz * t
+        lab_x = (to_lab[0, 0] * px + to_lab[0, 1] * py + to_lab[0, 2] * pz) / backdrop_radius
+        lab_y = (to_lab[1, 0] * px + to_lab[1, 1] * py + to_lab[1, 2] * pz) / backdrop_radius
+        lab_z = (to_lab[2, 0] * px + to_lab[2, 1] * py + to_lab[2, 2] * pz) / backdrop_radius
+        level = backdrop_level * (1.0 + 0.12 * lab_z + 0.06 * lab_y - 0.04 * lab_x)
+        radiance[r, 0], radiance[r, 1], radiance[r, 2] = level, level, 0.98 * level
+        best[r] = t
+        if dz < -_EPS:
+            t_plate = -ez / dz
+            hx, hy = ex + dx * t_plate, ey + dy * t_plate
+            if hx * hx + hy * hy <= plate_radius * plate_radius:
+                gx = min(max((hx + plate_radius) / (2.0 * plate_radius) * (g - 1), 0.0), g - 1.0)
+                gy = min(max((hy + plate_radius) / (2.0 * plate_radius) * (g - 1), 0.0), g - 1.0)
+                i0, j0 = min(int(gx), g - 2) if g > 1 else 0, min(int(gy), g - 2) if g > 1 else 0
+                fx, fy = gx - i0, gy - j0
+                i1, j1 = min(i0 + 1, g - 1), min(j0 + 1, g - 1)
+                openness = ((1 - fx) * ((1 - fy) * occlusion[i0, j0] + fy * occlusion[i0, j1])
+                            + fx * ((1 - fy) * occlusion[i1, j0] + fy * occlusion[i1, j1]))
+                light = plate_level * (0.25 + 0.75 * openness)
+                radiance[r, 0], radiance[r, 1], radiance[r, 2] = light, light, light
+                best[r] = t_plate
+    return radiance, best
 
 
 def hit_stone(world: World, eye: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -294,31 +346,11 @@ def render(
     key = np.asarray(world.key_direction_lab, dtype=np.float32)
     key = to_lab.T @ (key / np.linalg.norm(key))  # the lab's key light in the turntable frame
 
-    # backdrop: a sphere about the origin, lit from within, with a gentle gradient fixed in the lab
-    b = dirs @ eye
-    t_back = -b + np.sqrt(np.maximum(b * b - (eye @ eye - world.backdrop_radius_m**2), 0.0))
-    lab = (eye + dirs * t_back[:, None]) @ (to_lab.T / world.backdrop_radius_m)
-    level = world.backdrop_level * world.light_level * (1.0 + 0.12 * lab[:, 2] + 0.06 * lab[:, 1] - 0.04 * lab[:, 0])
-    radiance = level[:, None] * np.array([1.0, 1.0, 0.98], dtype=np.float32)  # [R, 3]
-    best = t_back
-
-    # plate: a grey disk at z=0 turning with the stone, darkened near the stone by contact occlusion
-    down = dirs[:, 2] < -_EPS
-    t_plate = np.full(len(dirs), np.inf, dtype=np.float32)
-    t_plate[down] = -eye[2] / dirs[down, 2]
-    on_plate = np.flatnonzero(down)
-    hit_xy = eye[:2] + dirs[on_plate, :2] * t_plate[on_plate, None]
-    inside = _dot(hit_xy, hit_xy) <= world.plate_radius_m**2
-    on_plate, hit_xy = on_plate[inside], hit_xy[inside]
-    if len(on_plate):
-        openness = np.ones(len(on_plate))
-        if present:
-            g = world.contact_shadow_grid
-            grid_xy = (hit_xy + world.plate_radius_m) / (2.0 * world.plate_radius_m) * (g - 1)
-            openness = map_coordinates(world.contact_occlusion, grid_xy.T, order=1, mode="nearest")
-        light = _irradiance(world, np.array([[0.0, 0.0, 1.0]]), key) * (0.25 + 0.75 * openness)
-        radiance[on_plate] = world.plate_albedo * light[:, None]
-        best[on_plate] = t_plate[on_plate]
+    occlusion = world.contact_occlusion if present else np.ones((1, 1))
+    plate_level = world.plate_albedo * float(_irradiance(world, np.array([[0.0, 0.0, 1.0]]), key)[0])
+    radiance, best = _backdrop_and_plate(eye, dirs, to_lab, world.backdrop_radius_m,
+                                         world.backdrop_level * world.light_level, world.plate_radius_m,
+                                         plate_level, occlusion)
 
     if world.chart is not None:
         t_chart, rgb = world.chart.intersect(to_lab @ eye, dirs @ to_lab.T)

@@ -232,6 +232,7 @@ def demo(
     started = time.monotonic()
     with progress_reporter("scan") as progress:
         run_sim_scan(scan_dir, None, 6, 40, DEMO_SENSOR, 0.05, progress)
+    err_console.print(f"scan: {time.monotonic() - started:.0f} s")
     # The simulator knows the true stone: the demo scores its mesh against it.
     report = run_pipeline(scan_dir, "ngs", "fast", reference=scan_dir / "sim_truth" / "mesh.ply",
                           training_width=DEMO_TRAINING_WIDTH)

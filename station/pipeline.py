@@ -15,6 +15,7 @@ import hashlib
 import json
 import os
 import re
+import time
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -283,10 +284,20 @@ def run_pipeline(scan_root: Path | str, params: dict[str, dict[str, Any]], progr
     for stage in STAGES:
         say(f"{stage.name} ...")
         last = stage is STAGES[-1]
+        started = time.monotonic()
         result = run_stage(scan_root, stage.name, params.get(stage.name, {}), progress, skip_done=not last)
-        if result is None:
-            say(f"{stage.name}: finished earlier; its outputs verify")
+        say(f"{stage.name}: finished earlier; its outputs verify" if result is None
+            else f"{stage.name}: {time.monotonic() - started:.0f} s{_inner_times(result)}")
     return result
+
+
+def _inner_times(result: Any) -> str:
+    """The process stage's own steps, which take time of their own: develop, poses, masks across rings."""
+    if not isinstance(result, dict) or "develop" not in result:
+        return ""
+    steps = {"develop": result["develop"].get("seconds"), "poses": result.get("poses", {}).get("seconds"),
+             "masks across rings": result.get("masks_across_rings", {}).get("seconds")}
+    return " (" + ", ".join(f"{name} {s:.0f} s" for name, s in steps.items() if isinstance(s, (int, float))) + ")"
 
 
 def stage_done(scan: ScanFolder, name: str) -> bool:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 
 import cv2
@@ -389,6 +391,31 @@ def test_develop_scan_cuts_masks_at_the_cameras_size_and_averages_them_down_to_t
         assert read_exr(scan.images_linear_dir / f"{stem}.exr").shape == (480, 640, 3)  # radiometry as developed
         mask = read_mask_png(scan.masks_dir / f"{stem}.png")
         assert iou(mask, _true_mask(7, "dark", (320, 240), elevation, azimuth)) >= 0.98
+
+
+def test_develop_scan_in_worker_processes_writes_what_one_process_writes(tmp_path: Path) -> None:
+    from station.process.develop_stage import ProcessSettings, develop_scan
+
+    reports = {}
+    for workers in (1, 2):
+        scan, _ = _small_scan(tmp_path / f"scan{workers}")
+        report = develop_scan(scan, ProcessSettings(workers=workers)).to_json()
+        timeless = {k: v for k, v in report.items() if k not in ("seconds", "matte_seconds")}
+        reports[workers] = json.dumps(timeless).replace(f"scan{workers}", "scan")  # a flag names the broken raw
+    assert reports[2] == reports[1]
+    for folder in ("images", "masks", "images_linear"):
+        one, two = sorted((tmp_path / "scan1" / folder).iterdir()), sorted((tmp_path / "scan2" / folder).iterdir())
+        assert [f.name for f in two] == [f.name for f in one] and len(one) >= 4
+        assert all(a.read_bytes() == b.read_bytes() for a, b in zip(one, two)), folder
+
+
+def test_shots_are_developed_in_as_many_processes_as_omp_num_threads_allows(monkeypatch) -> None:
+    from station.process.workers import available_cores
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert available_cores() == 1
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert available_cores() == len(os.sched_getaffinity(0))
 
 
 def test_a_training_width_below_one_pixel_is_refused() -> None:

@@ -31,6 +31,7 @@ from station.process.develop import Developed, DevelopSettings, WhiteBalance, de
 from station.process.images_io import write_exr_half, write_mask_png, write_png16
 from station.process.masks import MaskCheckSettings, MaskSettings, Matte, check_masks, compute_matte
 from station.process.photometry import FlatField, FlatFieldSettings, exposure_to_plate, fit_flat_field
+from station.process.workers import map_in_workers
 from station.scanfolder import ManifestEntry, ScanFolder
 
 
@@ -46,10 +47,13 @@ class ProcessSettings:
     flat_field: bool = True  # measure the lens's vignetting on the plates and divide it out
     flat_field_fit: FlatFieldSettings = FlatFieldSettings()
     exposure_to_plate: bool = True  # scale each shot to its ring's plate on the backdrop (shutter scatter)
+    workers: int = 0  # processes developing and masking shots at once; 0: one per core this process may use
 
     def __post_init__(self) -> None:
         if self.training_width is not None and self.training_width < 1:
             raise BadInputError(f"training width {self.training_width}: must be a positive number of pixels")
+        if self.workers < 0:
+            raise BadInputError(f"workers {self.workers}: must be 0 (one per core) or a positive count")
 
 
 @dataclass
@@ -172,17 +176,12 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
     reference = float(np.median(exposures)) if exposures else 0.0
 
     def develop(entry: ManifestEntry) -> Developed | None:
-        report = reports[entry.file]
-        try:
-            frame = develop_raw(scan.resolve_inside(entry.file), settings.develop, wb)
-        except BadInputError as exc:
-            report.flags.append(f"unreadable: {exc}")
+        developed = _develop_frame(scan, entry, settings, wb, reference)
+        if isinstance(developed, str):
+            reports[entry.file].flags.append(developed)
             return None
-        scale = reference / _exposure(entry) if reference > 0 and _exposure(entry) > 0 else 1.0
-        frame.linear *= np.float32(scale)
-        report.flags += frame.flags
-        report.clipped_fraction, report.exposure_scale = frame.clipped_fraction, scale
-        return frame
+        _record_frame(reports[entry.file], _FrameFacts.of(*developed))
+        return developed[0]
 
     developed_plates, plate_stems = {}, {}
     for entry in plates:
@@ -209,30 +208,20 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         plate_linear[elevation] = plate.linear if correction is None else np.clip(plate.linear @ correction.T, 0.0, None)
         write_exr_half(scan.images_linear_dir / f"{plate_stems[elevation]}.exr", plate_linear[elevation])
 
+    shots = [e for e in readable if e.kind == "shot"]
+    context = _ShotContext(scan, settings, wb, reference, correction, plate_linear, flat)
     rings: dict[float, list[tuple[float, str, np.ndarray]]] = {}
     matte_seconds = 0.0
-    for entry in (e for e in readable if e.kind == "shot"):
-        frame = develop(entry)
-        if frame is None:
-            continue
+    for entry, shot in zip(shots, map_in_workers(_develop_shot, shots, context, _set_shot_context, settings.workers)):
         report = reports[entry.file]
-        plate_elev = nearest_elevation(plate_linear, entry.elevation_deg)
-        if abs(plate_elev - entry.elevation_deg) > 1e-3:
-            report.flags.append(f"no_plate: none at {entry.elevation_deg} deg, masked against {plate_elev} deg")
-        linear = frame.linear if correction is None else np.clip(frame.linear @ correction.T, 0.0, None)
-        if settings.exposure_to_plate and abs(plate_elev - entry.elevation_deg) <= 1e-3:
-            gain = exposure_to_plate(linear, plate_linear[plate_elev])
-            linear *= np.float32(gain)
-            report.plate_gain = gain
-        stem = Path(entry.file).stem
-        started = time.perf_counter()
-        matte = training_matte(linear, plate_linear[plate_elev], settings, flat=flat)
-        matte_seconds += time.perf_counter() - started
-        mask = matte.mask
-        write_training_view(scan, stem, matte)
-        write_exr_half(scan.images_linear_dir / f"{stem}.exr", linear)
-        report.mask_area_fraction = float(mask.mean())
-        rings.setdefault(entry.elevation_deg, []).append((entry.azimuth_deg, entry.file, mask))
+        if shot.unreadable is not None:
+            report.flags.append(shot.unreadable)
+            continue
+        _record_frame(report, shot.frame)
+        report.flags += shot.flags
+        report.plate_gain, report.mask_area_fraction = shot.plate_gain, float(shot.mask.mean())
+        matte_seconds += shot.matte_seconds
+        rings.setdefault(entry.elevation_deg, []).append((entry.azimuth_deg, entry.file, shot.mask))
 
     flag_implausible_masks(rings, reports, settings.checks)
     used_wb = wb or WhiteBalance((1.0, 1.0, 1.0), source="as shot, per frame")
@@ -247,3 +236,93 @@ def develop_scan(scan: ScanFolder, settings: ProcessSettings = ProcessSettings()
         flat_field=flat,
         vignetting_stops=flat.corner_stops if settings.flat_field else None,
     )
+
+
+def _develop_frame(
+    scan: ScanFolder, entry: ManifestEntry, settings: ProcessSettings, wb: WhiteBalance | None, reference: float
+) -> tuple[Developed, float] | str:
+    """The frame developed and scaled to the scan's common exposure, with that scale; or why it could not be read."""
+    try:
+        frame = develop_raw(scan.resolve_inside(entry.file), settings.develop, wb)
+    except BadInputError as exc:
+        return f"unreadable: {exc}"
+    scale = reference / _exposure(entry) if reference > 0 and _exposure(entry) > 0 else 1.0
+    frame.linear *= np.float32(scale)
+    return frame, scale
+
+
+def _record_frame(report: FrameReport, facts: _FrameFacts) -> None:
+    report.flags += facts.flags
+    report.clipped_fraction, report.exposure_scale = facts.clipped_fraction, facts.exposure_scale
+
+
+@dataclass(frozen=True)
+class _ShotContext:
+    """What every shot's develop and matte share, handed once to each worker process."""
+
+    scan: ScanFolder  # the stage's view of it: its output folders may be staged siblings
+    settings: ProcessSettings
+    white_balance: WhiteBalance | None
+    reference_exposure: float
+    correction: np.ndarray | None  # the chart's colour matrix, when one was fitted
+    plate_linear: dict[float, np.ndarray]
+    flat: FlatField
+
+
+@dataclass(frozen=True)
+class _FrameFacts:
+    """What a frame's report keeps of its develop."""
+
+    flags: list[str]
+    clipped_fraction: float
+    exposure_scale: float
+
+    @staticmethod
+    def of(frame: Developed, exposure_scale: float) -> _FrameFacts:
+        return _FrameFacts(list(frame.flags), frame.clipped_fraction, exposure_scale)
+
+
+@dataclass(frozen=True)
+class _ShotResult:
+    unreadable: str | None
+    frame: _FrameFacts | None = None
+    flags: list[str] = field(default_factory=list)  # beyond the develop's own
+    plate_gain: float | None = None
+    mask: np.ndarray | None = None  # [H, W] bool at the training size
+    matte_seconds: float = 0.0
+
+
+_shot_context: _ShotContext | None = None
+
+
+def _set_shot_context(context: _ShotContext) -> None:
+    global _shot_context
+    _shot_context = context
+
+
+def _develop_shot(entry: ManifestEntry) -> _ShotResult:
+    """Develop one shot, cut its matte against its ring's plate and write its three files (in a worker process,
+    or in this one)."""
+    context = _shot_context
+    settings, scan = context.settings, context.scan
+    developed = _develop_frame(scan, entry, settings, context.white_balance, context.reference_exposure)
+    if isinstance(developed, str):
+        return _ShotResult(unreadable=developed)
+    frame = developed[0]
+    flags = []
+    plate_elev = nearest_elevation(context.plate_linear, entry.elevation_deg)
+    if abs(plate_elev - entry.elevation_deg) > 1e-3:
+        flags.append(f"no_plate: none at {entry.elevation_deg} deg, masked against {plate_elev} deg")
+    correction = context.correction
+    linear = frame.linear if correction is None else np.clip(frame.linear @ correction.T, 0.0, None)
+    plate_gain = None
+    if settings.exposure_to_plate and abs(plate_elev - entry.elevation_deg) <= 1e-3:
+        plate_gain = exposure_to_plate(linear, context.plate_linear[plate_elev])
+        linear *= np.float32(plate_gain)
+    stem = Path(entry.file).stem
+    started = time.perf_counter()
+    matte = training_matte(linear, context.plate_linear[plate_elev], settings, flat=context.flat)
+    matte_seconds = time.perf_counter() - started
+    write_training_view(scan, stem, matte)
+    write_exr_half(scan.images_linear_dir / f"{stem}.exr", linear)
+    return _ShotResult(None, _FrameFacts.of(*developed), flags, plate_gain, matte.mask, matte_seconds)

@@ -445,6 +445,7 @@ def refine_graph_cut(
             shadow = shadow_field(luma_ratio, background, field_px)
         return shadow
 
+    shadow = None  # fitted to `stone` as it is, once a round has fitted it
     for _ in range(settings.cut_iterations):
         if not stone.any():
             break
@@ -453,12 +454,15 @@ def refine_graph_cut(
         stone_nll = colour_model(colours[stone], settings.colour_bins, settings.colour_floor)(colours)
         # in noise units against the shadowed plate: the plate's edges and the shadow's gradient cancel
         edges = (relative[crop] - np.expm1(shadow)[..., None]) / edge_sigma[crop]  # [h, w, 3]
-        stone = min_cut(background_nll - stone_nll + hull_prior, edges, settings.smoothness, frame)
+        cut = min_cut(background_nll - stone_nll + hull_prior, edges, settings.smoothness, frame)
+        if np.array_equal(cut, stone):
+            break  # a fixed point: every further round would cut the same
+        stone, shadow = cut, None
     coverage = np.zeros(seed.shape, dtype=np.float32)
     background = plate.copy()
     coverage[crop] = stone
     if stone.any():
-        background[crop] *= np.exp(fitted_shadow(stone))[..., None]
+        background[crop] *= np.exp(fitted_shadow(stone) if shadow is None else shadow)[..., None]
         if settings.matte_boundary:
             coverage[crop] = matte_boundary(shot[crop], background[crop], stone, sigma[crop], settings.max_alpha_sigma)
     return coverage, background

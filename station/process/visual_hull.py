@@ -11,7 +11,10 @@ hugs the stone (from outside: concavities are filled) for the splats to start fr
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit, prange
 
 from station.formats.transforms import PinholeCamera
 
@@ -64,37 +67,65 @@ def carve_grid(
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Which `grid` points [N, 3] lie inside every mask that sees them, but for at most `max_misses` of those
     masks [N] bool, and their mean colour [N, 3] over the views (when `images` are given)."""
-    alive = np.arange(len(grid))  # voxels not yet carved away: each view only projects these
-    seen_count = np.zeros(len(grid), dtype=np.int64)
-    misses = np.zeros(len(grid), dtype=np.int64)
-    colour_sum = np.zeros((len(grid), 3)) if images is not None else None
-    colour_n = np.zeros(len(grid))
-    k = intr.matrix().astype(np.float32)
-    for i, (c2w, mask) in enumerate(zip(c2ws, masks)):
-        w2c = np.linalg.inv(c2w).astype(np.float32)
-        cam = grid[alive].astype(np.float32) @ w2c[:3, :3].T + w2c[:3, 3]  # [A, 3]
-        front = cam[:, 2] > 1e-6
-        uvw = cam @ k.T
-        z = np.where(front, uvw[:, 2], 1.0)
-        u = np.floor(uvw[:, 0] / z).astype(np.int64)
-        v = np.floor(uvw[:, 1] / z).astype(np.int64)
-        seen = front & (u >= 0) & (u < mask.shape[1]) & (v >= 0) & (v < mask.shape[0])
-        hit = np.zeros(len(alive), dtype=bool)
-        hit[seen] = mask[v[seen], u[seen]]
-        seen_count[alive[seen]] += 1
-        if colour_sum is not None:
-            colour_sum[alive[hit]] += images[i][v[hit], u[hit], :3]
-            colour_n[alive[hit]] += 1
-        missed = seen & ~hit  # a voxel outside the frame is not evidence against it
-        missed_ids = alive[missed]
-        misses[missed_ids] += 1
-        keep = ~missed
-        keep[missed] = misses[missed_ids] <= max_misses  # only the voxels this view missed can drop out
-        alive = alive[keep]
-    inside = np.zeros(len(grid), dtype=bool)
-    inside[alive] = True
-    inside &= seen_count >= max(2, len(c2ws) // 2)  # ...but a voxel few views see is not evidence for it
-    colours = colour_sum / np.maximum(colour_n, 1)[:, None] if colour_sum is not None else None
+    if len(c2ws) == 0:
+        return np.zeros(len(grid), dtype=bool), (np.zeros((len(grid), 3)) if images is not None else None)
+    w2cs = np.stack([np.linalg.inv(c2w)[:3] for c2w in c2ws])
+    stacked_masks, sizes = _stack_padded([np.asarray(m, dtype=bool) for m in masks])
+    stacked_images = _stack_padded([np.asarray(im)[..., :3] for im in images])[0] if images is not None else None
+    inside, colours = _carve(np.ascontiguousarray(grid, dtype=np.float64), w2cs, intr.matrix().astype(np.float64),
+                             stacked_masks, sizes, stacked_images if stacked_images is not None else np.zeros((1, 1, 1, 3)),
+                             stacked_images is not None, max_misses, max(2, len(c2ws) // 2))
+    return inside, colours if images is not None else None
+
+
+def _stack_padded(arrays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """One [V, Hmax, Wmax, ...] array of the views' images, zero-padded, and each view's own [V, 2] (H, W)."""
+    sizes = np.array([a.shape[:2] for a in arrays], dtype=np.int64)
+    out = np.zeros((len(arrays), *sizes.max(0), *arrays[0].shape[2:]), dtype=arrays[0].dtype)
+    for i, a in enumerate(arrays):
+        out[i, : a.shape[0], : a.shape[1]] = a
+    return out, sizes
+
+
+@njit(parallel=True, cache=True)
+def _carve(grid, w2cs, k, masks, sizes, images, with_colour, max_misses, min_seen):
+    """Per voxel, the views in order until more than `max_misses` of those that see it call it background:
+    the voxels a view carves away are never projected again, so most of the grid costs a few views."""
+    n, views = grid.shape[0], w2cs.shape[0]
+    inside = np.zeros(n, dtype=np.bool_)
+    colours = np.zeros((n if with_colour else 0, 3))
+    for i in prange(n):
+        x, y, z = grid[i, 0], grid[i, 1], grid[i, 2]
+        seen = 0
+        misses = 0
+        r = g = b = 0.0
+        hits = 0
+        for v in range(views):
+            m = w2cs[v]
+            cz = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
+            if cz <= 1e-6:
+                continue
+            cx = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
+            cy = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
+            w = k[2, 0] * cx + k[2, 1] * cy + k[2, 2] * cz
+            u = math.floor((k[0, 0] * cx + k[0, 1] * cy + k[0, 2] * cz) / w)
+            row = math.floor((k[1, 0] * cx + k[1, 1] * cy + k[1, 2] * cz) / w)
+            if u < 0 or u >= sizes[v, 1] or row < 0 or row >= sizes[v, 0]:
+                continue  # a voxel outside the frame is not evidence against it
+            seen += 1
+            if masks[v, row, u]:
+                if with_colour:
+                    r += images[v, row, u, 0]
+                    g += images[v, row, u, 1]
+                    b += images[v, row, u, 2]
+                    hits += 1
+            else:
+                misses += 1
+                if misses > max_misses:
+                    break
+        inside[i] = misses <= max_misses and seen >= min_seen  # a voxel few views see is not evidence for it
+        if with_colour and hits > 0:
+            colours[i, 0], colours[i, 1], colours[i, 2] = r / hits, g / hits, b / hits
     return inside, colours
 
 

@@ -1,0 +1,50 @@
+"""Per-frame work spread over worker processes: developing and matting a shot is single-threaded
+numpy and OpenCV, so a scan's 240 shots use one core unless each worker takes its own."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+from typing import Callable, Iterable, Iterator, TypeVar
+
+Job = TypeVar("Job")
+Result = TypeVar("Result")
+Context = TypeVar("Context")
+
+
+def available_cores() -> int:
+    """The cores this process may use: its CPU affinity, capped by OMP_NUM_THREADS when that is set (the test
+    runner's workers and the batch runner's stage processes each keep to their share this way)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    limit = os.environ.get("OMP_NUM_THREADS", "")
+    return max(1, min(cores, int(limit))) if limit.isdigit() and int(limit) > 0 else max(1, cores)
+
+
+def map_in_workers(
+    work: Callable[[Job], Result], jobs: Iterable[Job], context: Context,
+    set_context: Callable[[Context], None], workers: int = 0,
+) -> Iterator[Result]:
+    """`work` over `jobs` in order, in `workers` processes (0: `available_cores()`), each given `context` once
+    through `set_context`. One worker, or one job, runs here in this process.
+
+    Workers are spawned, not forked: a fork of a process whose torch or OpenMP pool is running can hang.
+    A worker's exception is raised here, from the job that failed.
+    """
+    jobs = list(jobs)
+    count = min(workers or available_cores(), len(jobs))
+    if count <= 1:
+        set_context(context)
+        yield from map(work, jobs)
+        return
+    spawn = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(count, mp_context=spawn, initializer=_start_worker, initargs=(set_context, context)) as pool:
+        yield from pool.map(work, jobs, chunksize=max(1, len(jobs) // (8 * count)))
+
+
+def _start_worker(set_context: Callable[[Context], None], context: Context) -> None:
+    """One thread per worker: the workers together take the cores."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    set_context(context)
