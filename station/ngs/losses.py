@@ -25,25 +25,26 @@ class LossConfig:
     crop_threshold: float = 0.1
 
 
-def _gaussian_window(channels: int) -> torch.Tensor:
+def _gaussian_taps() -> torch.Tensor:
     coords = torch.arange(SSIM_WINDOW, dtype=torch.float32) - SSIM_WINDOW // 2
     g = torch.exp(-(coords**2) / (2 * SSIM_SIGMA**2))
-    g = g / g.sum()
-    window = (g[:, None] * g[None, :])[None, None]  # [1, 1, 11, 11]
-    return window.repeat(channels, 1, 1, 1)  # [C, 1, 11, 11]
+    return g / g.sum()
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of two [H,W,C] images in [0,1] ('valid' windows, as fused-ssim in training)."""
+    """Mean SSIM of two [H,W,C] images in [0,1] ('valid' windows, as fused-ssim in training).
+
+    The five local moments go through one grouped convolution, and the Gaussian window is separable:
+    two 11-tap passes cost a fifth of one 11x11 pass, forward and backward."""
     x = a.permute(2, 0, 1)[None]  # [1, C, H, W]
     y = b.permute(2, 0, 1)[None]
     channels = x.shape[1]
-    window = _gaussian_window(channels).to(x)
-    mu_x = F.conv2d(x, window, groups=channels)
-    mu_y = F.conv2d(y, window, groups=channels)
-    sxx = F.conv2d(x * x, window, groups=channels) - mu_x**2
-    syy = F.conv2d(y * y, window, groups=channels) - mu_y**2
-    sxy = F.conv2d(x * y, window, groups=channels) - mu_x * mu_y
+    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [1, 5C, H, W]
+    taps = _gaussian_taps().to(x)
+    moments = F.conv2d(stack, taps.view(1, 1, -1, 1).expand(5 * channels, 1, -1, 1), groups=5 * channels)
+    moments = F.conv2d(moments, taps.view(1, 1, 1, -1).expand(5 * channels, 1, 1, -1), groups=5 * channels)
+    mu_x, mu_y, xx, yy, xy = moments.split(channels, dim=1)
+    sxx, syy, sxy = xx - mu_x**2, yy - mu_y**2, xy - mu_x * mu_y
     c1, c2 = 0.01**2, 0.03**2
     value = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
     return value.mean()
