@@ -49,6 +49,8 @@ def num(value: object, digits: int = 3) -> str:
 
 
 def kind_of(data: dict) -> str:
+    if data.get("benchmark") == "demo":
+        return "demo"
     methods = data.get("methods")
     if isinstance(methods, dict) and methods:
         first = next(iter(methods.values()))
@@ -259,6 +261,23 @@ def scan_section(name: str, data: dict) -> Section:
     return lines, {}
 
 
+def demo_section(name: str, data: dict) -> Section:
+    runs = data["runs"]
+    stages = list(dict.fromkeys(stage for run in runs.values() for stage in run["stages_s"]))
+    rows = [[stage, *(num(run["stages_s"].get(stage), 1) if stage in run["stages_s"] else "–" for run in runs.values())]
+            for stage in stages]
+    for key in ("PSNR", "SOS"):
+        rows.append([key, *(num(run["gate"].get(key)) for run in runs.values())])
+    rows.append(["gate passed", *(str(run["gate_passed"]) for run in runs.values())])
+    rows.append(["1-min load before / after", *(f"{run['load_1min_before']} / {run['load_1min_after']}"
+                                                for run in runs.values())])
+    lines = [f"`station demo` end to end, seconds by stage, from the demo's own summary ({data['note']}).", ""]
+    lines += table(["stage", *(f"{name} ({run['revision']})" for name, run in runs.items())], rows)
+    if "total_ratio_after_over_before" in data:
+        lines += [f"Total, after / before: ×{data['total_ratio_after_over_before']}.", ""]
+    return lines, {}
+
+
 def other_section(name: str, data: dict) -> Section:
     flat = {k: v for k, v in data.items() if not isinstance(v, (dict, list))}
     nested = [k for k, v in data.items() if isinstance(v, (dict, list))]
@@ -270,6 +289,7 @@ def other_section(name: str, data: dict) -> Section:
 
 
 SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
+    "demo": ("The demo, stage by stage", demo_section),
     "scan": ("Scanning on the simulated rig", scan_section),
     "process": ("Developing and posing", process_section),
     "masks": ("Masks, one view at a time", masks_section),
