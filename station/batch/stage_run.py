@@ -10,6 +10,7 @@ boundaries.
 from __future__ import annotations
 
 import errno
+import os
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
@@ -81,7 +82,8 @@ def limit_threads(threads: int) -> None:
     (the local executor's forkserver), resets torch's OpenMP thread count to all cores: measured
     7x slower training on 2 cores. The workqueue layer leaves it alone; a stage process calls numba
     from one thread only, which is all workqueue needs. It must be chosen before the first
-    parallel kernel runs in the process."""
+    parallel kernel runs in the process. OMP_NUM_THREADS carries the share to the process stage's own
+    worker processes (station/process/workers.py), which it also caps."""
     import cv2
     import numba
     import torch
@@ -90,6 +92,7 @@ def limit_threads(threads: int) -> None:
     torch.set_num_threads(threads)
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     cv2.setNumThreads(threads)
+    os.environ["OMP_NUM_THREADS"] = str(threads)
 
 
 def execute_stage(call: StageCall) -> Outcome:

@@ -13,7 +13,8 @@ resolution and, when `ProcessSettings.training_width` is narrower, area-averaged
 images/ and masks/ (images_linear/ stays as developed): a camera finer than the training images
 gives masks finer than one training pixel. Frames that cannot be used are not fatal: each frame's
 report carries its flags (unreadable, black, saturated, clipped highlights, implausible
-mask), so an unattended run finishes and says exactly which views are suspect.
+mask), so an unattended run finishes and says exactly which views are suspect. Shots are developed and
+matted in worker processes, one per core this process may use (workers.py).
 """
 
 from __future__ import annotations
