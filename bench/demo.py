@@ -1,8 +1,9 @@
 """`station demo` end to end, stage by stage: this tree against an earlier revision, in the same run.
 
 Runs the demo exactly as a user does (`python -m station demo`), once per tree, each in a fresh
-process with its own empty numba cache (both pay their compile), and reads the stage times from the
-demo's own summary lines. The error axis is the gate's: held-out PSNR and SOS, mesh watertight.
+process with its own empty numba cache (both pay their compile), then this tree's again with the
+cache it filled (as every demo after the first), and reads the stage times from the demo's own
+summary lines. The error axis is the gate's: held-out PSNR and SOS, mesh watertight.
 
     python bench/demo.py [--against REV] [--out bench/results/demo.json]
 """
@@ -56,9 +57,8 @@ def stage_times_from_files(scan: Path) -> dict[str, float]:
     return {name: round(float(seconds), 1) for name, seconds in steps.items() if isinstance(seconds, (int, float))}
 
 
-def run_demo(tree: Path, work: Path) -> dict:
-    """One `station demo` from `tree`'s source, cold numba cache; its stage times, verdict and machine load."""
-    cache = work / "numba-cache"
+def run_demo(tree: Path, work: Path, cache: Path) -> dict:
+    """One `station demo` from `tree`'s source with numba's cache in `cache`; its stage times, verdict and load."""
     env = {**os.environ, "PYTHONPATH": str(tree), "NUMBA_CACHE_DIR": str(cache)}
     load_before = os.getloadavg()
     started = time.monotonic()
@@ -87,13 +87,19 @@ def main() -> None:
             archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.against], capture_output=True,
                                      check=True).stdout
             subprocess.run(["tar", "-x", "-C", str(old)], input=archive, check=True)
-            runs["before"] = run_demo(old, Path(tmp) / "before") | {"revision": args.against}
+            runs["before"] = run_demo(old, Path(tmp) / "before", Path(tmp) / "before-cache") | {
+                "revision": args.against, "numba_cache": "empty"}
         head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                               text=True).stdout.strip()
-        runs["after"] = run_demo(ROOT, Path(tmp) / "after") | {"revision": f"{head} (working tree)"}
+        cache = Path(tmp) / "after-cache"
+        runs["after"] = run_demo(ROOT, Path(tmp) / "after", cache) | {"revision": f"{head} (working tree)",
+                                                                       "numba_cache": "empty"}
+        runs["after, warm"] = run_demo(ROOT, Path(tmp) / "after-warm", cache) | {
+            "revision": f"{head} (working tree)", "numba_cache": "kept from the run before"}
     result = {"benchmark": "demo", "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
                                                "python": sys.version.split()[0]},
-              "note": "each run starts with an empty numba cache, so both include their kernels' compile time",
+              "note": "before and after start with an empty numba cache, so both include their kernels' compile "
+                      "time; 'after, warm' runs again with the cache the after run filled, as a second demo does",
               "runs": runs}
     if "before" in runs and runs["before"]["stages_s"].get("total") and runs["after"]["stages_s"].get("total"):
         result["total_ratio_after_over_before"] = round(runs["after"]["stages_s"]["total"]
