@@ -263,12 +263,14 @@ def scan_section(name: str, data: dict) -> Section:
 
 def demo_section(name: str, data: dict) -> Section:
     runs = data["runs"]
-    stages = list(dict.fromkeys(stage for run in runs.values() for stage in run["stages_s"]))
+    order = ["scan", "process", "process/develop", "process/poses", "process/masks across rings", "train", "export"]
+    stages = sorted({stage for run in runs.values() for stage in run["stages_s"]},
+                    key=lambda stage: order.index(stage) if stage in order else len(order))
     rows = [[stage, *(num(run["stages_s"].get(stage), 1) if stage in run["stages_s"] else "–" for run in runs.values())]
             for stage in stages]
     for key in ("PSNR", "SOS"):
         rows.append([key, *(num(run["gate"].get(key)) for run in runs.values())])
-    rows.append(["gate passed", *(str(run["gate_passed"]) for run in runs.values())])
+    rows.append(["gate passed", *(num(run["gate_passed"]) for run in runs.values())])
     rows.append(["1-min load before / after", *(f"{run['load_1min_before']} / {run['load_1min_after']}"
                                                 for run in runs.values())])
     lines = [f"`station demo` end to end, seconds by stage, from the demo's own summary ({data['note']}).", ""]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
-from typing import Callable, Iterable, Iterator, TypeVar
+from typing import Callable, Iterable, TypeVar
 
 Job = TypeVar("Job")
 Result = TypeVar("Result")
@@ -24,8 +24,8 @@ def available_cores() -> int:
 def map_in_workers(
     work: Callable[[Job], Result], jobs: Iterable[Job], context: Context,
     set_context: Callable[[Context], None], workers: int = 0,
-) -> Iterator[Result]:
-    """`work` over `jobs` in order, in `workers` processes (0: `available_cores()`), each given `context` once
+) -> list[Result]:
+    """`work` over `jobs`, results in order, in `workers` processes (0: `available_cores()`), each given `context` once
     through `set_context`. One worker, or one job, runs here in this process.
 
     Workers are spawned, not forked: a fork of a process whose torch or OpenMP pool is running can hang.
@@ -35,11 +35,10 @@ def map_in_workers(
     count = min(workers or available_cores(), len(jobs))
     if count <= 1:
         set_context(context)
-        yield from map(work, jobs)
-        return
+        return [work(job) for job in jobs]
     spawn = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(count, mp_context=spawn, initializer=_start_worker, initargs=(set_context, context)) as pool:
-        yield from pool.map(work, jobs, chunksize=max(1, len(jobs) // (8 * count)))
+        return list(pool.map(work, jobs, chunksize=max(1, len(jobs) // (8 * count))))
 
 
 def _start_worker(set_context: Callable[[Context], None], context: Context) -> None:
