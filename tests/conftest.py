@@ -1,6 +1,8 @@
 """Test-wide set-up that must happen before any test module imports torch or numba."""
 
 import os
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -24,14 +26,23 @@ if _WORKER:
 @pytest.fixture(scope="session")
 def tiny_shot(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Path]:
     """tiny_shot(stone): a finished 2 x 8 scan of `stone` at 160x120, shot once per worker for every
-    batch module that asks for it. It is shared: copy it (batch_support.copy_scans) before changing it."""
-    from batch_support import shoot
+    batch module that asks for it. It is shared: copy it (batch_support.copy_scans) before changing it.
+
+    The first shot is also run through every stage once, in a process of its own, so numba's cache for this
+    worker holds the stages' kernels before a batch starts: otherwise each stage process the batch starts
+    before the first has saved them compiles them again, and on a fresh clone that doubled the batch tests."""
+    from batch_support import copy_scans, shoot
 
     shots: dict[str, Path] = {}
 
     def shot(stone: str) -> Path:
         if stone not in shots:
             shots[stone] = shoot(tmp_path_factory.mktemp("tiny-shot") / f"stone{stone}", stone)
+            if len(shots) == 1:
+                warm = copy_scans([shots[stone]], tmp_path_factory.mktemp("kernel-warm-up"))[0]
+                done = subprocess.run([sys.executable, "-m", "station", "run", str(warm), "--preset", "tiny"],
+                                      capture_output=True, text=True, timeout=600)
+                assert done.returncode in (0, 1), done.stderr[-3000:]  # 1: the tiny model's gate failed
         return shots[stone]
 
     return shot
