@@ -247,15 +247,14 @@ def shadow_field(log_ratio: np.ndarray, background: np.ndarray, sigma_px: float)
 
     m00, m10, m01 = moment(weight, 0, 0), moment(weight, 1, 0), moment(weight, 0, 1)
     ridge = 1e-2 * sigma_px**2 * m00  # keeps the slope tame where background lies along a line
-    normal = np.stack([
-        np.stack([m00, m10, m01], -1),
-        np.stack([m10, moment(weight, 2, 0) + ridge, moment(weight, 1, 1)], -1),
-        np.stack([m01, moment(weight, 1, 1), moment(weight, 0, 2) + ridge], -1),
-    ], -2)  # [H, W, 3, 3]
-    rhs = np.stack([moment(value, 0, 0), moment(value, 1, 0), moment(value, 0, 1)], -1)  # [H, W, 3]
+    m20, m11, m02 = moment(weight, 2, 0) + ridge, moment(weight, 1, 1), moment(weight, 0, 2) + ridge
+    v0, v1, v2 = moment(value, 0, 0), moment(value, 1, 0), moment(value, 0, 1)
+    # the plane's value at the pixel: the first unknown of the symmetric 3x3 normal equations, by Cramer's rule
+    minor = m20 * m02 - m11 * m11
+    det = m00 * minor - m10 * (m10 * m02 - m11 * m01) + m01 * (m10 * m11 - m20 * m01)
+    numerator = v0 * minor - m10 * (v1 * m02 - m11 * v2) + m01 * (v1 * m11 - m20 * v2)
     near = m00 > 1e-3
-    normal[~near], rhs[~near] = np.eye(3), 0.0
-    level = np.linalg.solve(normal, rhs[..., None])[..., 0, 0]  # [H, W] plane value at the pixel
+    level = numerator / np.where(near, det, 1.0)
     return np.minimum(np.where(near, level, 0.0), 0.0).astype(np.float32)
 
 
