@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from station.errors import BadInputError
-from station.ngs.infill import Camera, InfillConfig, build_infill, candidate_cells, depth_prune_mask, hull_equations
+from station.ngs.infill import (Camera, InfillConfig, build_infill, candidate_cells, depth_prune_mask, hull_equations,
+                                surface_depths)
 from station.rig_geometry import look_at_c2w
 
 RADIUS = 1.0
@@ -63,7 +64,7 @@ TINY = InfillConfig(levels=(8, 16), erosion_iters=(2, 2), prune_downscale=1)
 def test_depth_pruning_marks_noise_in_front_of_the_surface_and_keeps_noise_behind_it():
     cams = ring_cameras()
     noise = noise_at([[0.0, 0.0, 0.0], [0.0, 0.0, 0.3], [2.0, 0.5, 0.2], [0.3, -1.6, 0.1]])
-    marked = depth_prune_mask(sphere_surface(), noise, cams, surface_alpha=0.5)
+    marked = depth_prune_mask(noise, cams, surface_depths(sphere_surface(), cams, 0.5))
     assert marked.tolist() == [False, False, True, True]
 
 
@@ -74,8 +75,8 @@ def test_noise_inside_a_diffuse_surface_layer_is_pruned_unless_the_surface_start
     faint["opacities"] = torch.full_like(faint["opacities"], 0.01)
     noise = noise_at([[0.0, 0.0, 1.4], [0.0, 0.0, 0.0]])  # between the shells; deep inside both
     surface = join(faint, sphere_surface())
-    assert depth_prune_mask(surface, noise, cams, surface_alpha=0.5).tolist() == [True, False]
-    assert depth_prune_mask(surface, noise, cams, surface_alpha=1 / 255).tolist() == [False, False]
+    assert depth_prune_mask(noise, cams, surface_depths(surface, cams, 0.5)).tolist() == [True, False]
+    assert depth_prune_mask(noise, cams, surface_depths(surface, cams, 1 / 255)).tolist() == [False, False]
 
 
 def test_noise_behind_a_still_half_transparent_surface_is_kept_for_the_noise_to_make_it_opaque():
@@ -83,7 +84,7 @@ def test_noise_behind_a_still_half_transparent_surface_is_kept_for_the_noise_to_
     see_through = sphere_surface()
     see_through["opacities"] = torch.full_like(see_through["opacities"], 0.05)
     noise = noise_at([[0.0, 0.0, 0.0], [0.0, 0.0, 1.4]])  # inside; outside in front
-    assert depth_prune_mask(see_through, noise, cams, surface_alpha=0.5).tolist() == [False, True]
+    assert depth_prune_mask(noise, cams, surface_depths(see_through, cams, 0.5)).tolist() == [False, True]
 
 
 def test_infill_of_a_sphere_lies_strictly_inside_it():

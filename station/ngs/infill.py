@@ -137,24 +137,32 @@ def candidate_cells(covered: np.ndarray, origin: np.ndarray, h: float, planes: n
     return np.concatenate(found) if found else np.zeros((0, 3), dtype=np.int64)
 
 
-def depth_prune_mask(surface: dict[str, torch.Tensor], noise: dict[str, torch.Tensor], cameras: list[Camera],
-                     surface_alpha: float) -> torch.Tensor:
-    """[M] bool: noise some view sees in front of the surface, or where there is no surface.
+def surface_depths(surface: dict[str, torch.Tensor], cameras: list[Camera], surface_alpha: float) -> list[torch.Tensor]:
+    """Per camera, the depth [H*W] where the surface starts: where its own accumulated alpha reaches
+    `surface_alpha`, or half the pixel's surface alpha where that is less.
 
-    The surface starts where its own accumulated alpha reaches `surface_alpha`, or half the pixel's surface
-    alpha where that is less: a still half-transparent surface keeps the noise behind most of its weight,
-    which is the noise's job to make opaque. At 1/255 it is the paper's first surface Gaussian."""
-    m = noise["means"].shape[0]
-    marked = torch.zeros(m, dtype=torch.bool, device=noise["means"].device)
-    if m == 0:
-        return marked
+    A still half-transparent surface keeps the noise behind most of its weight, which is the noise's job
+    to make opaque. At 1/255 it is the paper's first surface Gaussian. Computed once per build: every
+    infill level is pruned against the same surface."""
     args = tuple(surface[key].detach() for key in ("means", "quats", "scales", "opacities"))
+    depths = []
     for cam in cameras:
         _, alpha, _ = rasterization(*args, torch.zeros_like(args[0]), cam.viewmat[None], cam.K[None], cam.width,
                                     cam.height)
         level = torch.clamp(0.5 * alpha[0, ..., 0], max=surface_alpha)
-        surface_z = median_depth(*args, cam.viewmat, cam.K, cam.width, cam.height,
-                                 alpha_level=level).reshape(-1).to(marked.device)
+        depths.append(median_depth(*args, cam.viewmat, cam.K, cam.width, cam.height, alpha_level=level).reshape(-1))
+    return depths
+
+
+def depth_prune_mask(noise: dict[str, torch.Tensor], cameras: list[Camera], depths: list[torch.Tensor]) -> torch.Tensor:
+    """[M] bool: noise some view sees in front of the surface (`surface_depths` for these cameras), or where
+    there is no surface."""
+    m = noise["means"].shape[0]
+    marked = torch.zeros(m, dtype=torch.bool, device=noise["means"].device)
+    if m == 0:
+        return marked
+    for cam, surface_z in zip(cameras, depths):
+        surface_z = surface_z.to(marked.device)
         offsets, ids = pixel_contributors(
             noise["means"], noise["quats"], noise["scales"], noise["opacities"], cam.viewmat, cam.K, cam.width, cam.height
         )  # [P+1], [E]
@@ -188,6 +196,7 @@ def build_infill(surface: dict[str, torch.Tensor], cameras: list[Camera], cfg: I
         small.append(Camera(cam.viewmat, K, max(1, cam.width // ds), max(1, cam.height // ds)))
     occupied = np.zeros((1, 1, 1), dtype=bool)
     parts: list[Infill] = []
+    depths: list[torch.Tensor] | None = None  # rendered when the first level needs them
     for index, (res, iters) in enumerate(zip(cfg.levels, cfg.erosion_iters)):
         h = side / res
         covered = occupied
@@ -202,7 +211,8 @@ def build_infill(surface: dict[str, torch.Tensor], cameras: list[Camera], cfg: I
         )
         if cfg.depth_prune and len(level):
             opacity = cfg.first_opacity if index == 0 else cfg.finer_opacity
-            keep = ~depth_prune_mask(surface, level.gaussians(opacity), small, cfg.surface_alpha)
+            depths = surface_depths(surface, small, cfg.surface_alpha) if depths is None else depths
+            keep = ~depth_prune_mask(level.gaussians(opacity), small, depths)
             level, cells = level.select(keep), cells[keep.cpu().numpy()]
         grid = covered.copy()
         grid[tuple(cells.T)] = True
