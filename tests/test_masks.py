@@ -9,10 +9,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scipy import sparse
+from scipy.sparse.csgraph import maximum_flow
 
 from station.errors import BadInputError
 from station.process.images_io import read_exr, read_mask_png, read_png16
-from station.process.masks import Matte, MaskSettings, check_masks, compute_mask, compute_matte, shadow_field, unmix
+from station.process.masks import (Matte, MaskSettings, check_masks, compute_mask, compute_matte, min_cut, shadow_field,
+                                   unmix)
 from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, sha256_bytes
 
 
@@ -239,6 +242,60 @@ def test_shadow_field_continues_a_shadow_slope_under_the_stone() -> None:
     background[20:40, 30:50] = False  # where the stone hides the plate
     field = shadow_field(darkening, background, sigma_px=4.0)
     np.testing.assert_allclose(field[20:40, 30:50], darkening[20:40, 30:50], atol=0.005)
+
+
+def reference_cut_graph(evidence: np.ndarray, features: np.ndarray, smoothness: float,
+                        fixed_background: np.ndarray) -> sparse.csr_array:
+    """The graph cut's graph the plain way: numpy pair lists into scipy's COO (source n, sink n + 1)."""
+    h, w = evidence.shape
+    n = h * w
+    index = np.arange(n).reshape(h, w)
+    flat = features.reshape(n, -1).astype(np.float64)
+    pairs = []
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = index[: h - dy, max(0, -dx): w - max(0, dx)].ravel()
+        b = index[dy:, max(0, dx): w + min(0, dx)].ravel()
+        pairs.append((a, b, ((flat[a] - flat[b]) ** 2).sum(axis=1), np.hypot(dy, dx)))
+    beta = 1.0 / (2.0 * np.mean(np.concatenate([p[2] for p in pairs])) + 1e-12)
+    rows, cols, capacity = [], [], []
+    for a, b, squared, distance in pairs:
+        weight = np.rint(100 * smoothness * np.exp(-beta * squared) / distance) + 1
+        rows += [a, b]
+        cols += [b, a]
+        capacity += [weight, weight]
+    nats = np.clip(evidence.ravel(), -50.0, 50.0)
+    to_background = np.where(fixed_background.ravel(), np.rint(100 * (50.0 + 8 * smoothness)) + 8,
+                             np.rint(100 * np.maximum(-nats, 0.0)))
+    rows += [np.full(n, n), index.ravel()]
+    cols += [index.ravel(), np.full(n, n + 1)]
+    capacity += [np.rint(100 * np.maximum(nats, 0.0)), to_background]
+    return sparse.csr_array((np.concatenate(capacity).astype(np.int32), (np.concatenate(rows), np.concatenate(cols))),
+                            shape=(n + 2, n + 2))
+
+
+@pytest.mark.parametrize("case", ["disc", "no stone", "all stone but the frame", "textureless"])
+def test_the_graph_cut_is_a_minimum_cut_of_the_plain_graph(case: str) -> None:
+    rng = np.random.default_rng(3)
+    h, w = 41, 53
+    yy, xx = np.mgrid[0:h, 0:w]
+    disc = (yy - 20) ** 2 + (xx - 27) ** 2 < 12**2
+    evidence = {"disc": np.where(disc, 2.0, -2.0) + rng.normal(0, 2.5, (h, w)), "no stone": -np.ones((h, w)),
+                "all stone but the frame": np.full((h, w), 60.0), "textureless": np.where(disc, 5.0, -5.0)}[case]
+    features = rng.normal(0, 1, (h, w, 3)).astype(np.float32) + 4 * disc[..., None]
+    features = np.zeros_like(features) if case == "textureless" else features
+    frame = np.ones((h, w), bool)
+    frame[1:-1, 1:-1] = False
+
+    stone = min_cut(evidence, features, 9.0, frame)
+
+    graph = reference_cut_graph(evidence, features, 9.0, frame)
+    best = maximum_flow(graph, h * w, h * w + 1).flow_value
+    source_side = np.append(stone.ravel(), [True, False])
+    coo = graph.tocoo()
+    cut = coo.data[source_side[coo.row] & ~source_side[coo.col]].astype(np.int64).sum()
+    assert cut == best
+    assert not stone[frame].any()
+    assert {"no stone": not stone.any(), "all stone but the frame": stone[~frame].all()}.get(case, iou(stone, disc) > 0.8)
 
 
 def test_frames_larger_than_the_working_size_are_masked_there_and_resized_back() -> None:

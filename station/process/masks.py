@@ -44,8 +44,9 @@ from typing import Callable
 
 import cv2
 import numpy as np
+from numba import njit
 from scipy import ndimage, sparse
-from scipy.sparse.csgraph import breadth_first_order, maximum_flow
+from scipy.sparse.csgraph import maximum_flow
 
 from station.errors import BadInputError
 
@@ -286,41 +287,108 @@ def min_cut(evidence: np.ndarray, features: np.ndarray, smoothness: float, fixed
     h, w = evidence.shape
     n = h * w
     source, sink = n, n + 1
-    index = np.arange(n).reshape(h, w)
-    flat = features.reshape(n, -1)
-    pairs = []
-    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        a = index[: h - dy, max(0, -dx): w - max(0, dx)].ravel()
-        b = index[dy:, max(0, dx): w + min(0, dx)].ravel()
-        pairs.append((a, b, ((flat[a] - flat[b]) ** 2).sum(axis=1), np.hypot(dy, dx)))
-    beta = 1.0 / (2.0 * np.mean(np.concatenate([p[2] for p in pairs])) + 1e-12)
-    rows, cols, capacity = [], [], []
-    for a, b, squared, distance in pairs:
-        weight = np.rint(_NATS_TO_CAPACITY * smoothness * np.exp(-beta * squared) / distance).astype(np.int64) + 1
-        rows += [a, b]
-        cols += [b, a]
-        capacity += [weight, weight]
-    nats = np.clip(evidence.ravel(), -_MAX_NATS, _MAX_NATS)
-    to_stone = np.rint(_NATS_TO_CAPACITY * np.maximum(nats, 0.0)).astype(np.int64)  # paid if labelled background
-    to_background = np.rint(_NATS_TO_CAPACITY * np.maximum(-nats, 0.0)).astype(np.int64)
-    to_background[fixed_background.ravel()] = np.rint(_NATS_TO_CAPACITY * (_MAX_NATS + 8 * smoothness)) + 8
-    rows += [np.full(n, source), index.ravel()]
-    cols += [index.ravel(), np.full(n, sink)]
-    capacity += [to_stone, to_background]
-    capacity_all = np.concatenate(capacity)
-    keep = capacity_all > 0
-    graph = sparse.csr_array(
-        (capacity_all[keep].astype(np.int32), (np.concatenate(rows)[keep], np.concatenate(cols)[keep])),
-        shape=(n + 2, n + 2),
-    )
-    flow = maximum_flow(graph, source, sink, method="dinic").flow
-    residual = (graph - flow).tocsr()
-    residual.data = np.maximum(residual.data, 0)
-    residual.eliminate_zeros()
-    reached = breadth_first_order(residual, source, directed=True, return_predecessors=False)
-    stone = np.zeros(n + 2, dtype=bool)
-    stone[reached] = True
+    indptr, indices, capacity = _cut_graph(
+        np.ascontiguousarray(evidence, dtype=np.float64), np.ascontiguousarray(features, dtype=np.float32),
+        float(smoothness), np.ascontiguousarray(fixed_background, dtype=np.bool_))
+    graph = sparse.csr_array((capacity, indices, indptr), shape=(n + 2, n + 2))
+    graph.has_sorted_indices = True
+    flow = maximum_flow(graph, source, sink, method="dinic").flow.tocsr()
+    flow.sort_indices()
+    stone = _source_side(indptr, indices, capacity, flow.indptr, flow.indices, flow.data, source)
     return stone[:n].reshape(h, w)
+
+
+_NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))  # in column order
+
+
+@njit(cache=True)
+def _cut_graph(evidence, features, smoothness, fixed_background):
+    """The cut's graph in CSR (rows sorted, int32 capacities): pixels, then the source (stone) and the sink.
+
+    Built in one pass per row instead of as numpy pair lists, whose assembly cost as much as the max-flow."""
+    h, w = evidence.shape
+    n = h * w
+    total, pairs = 0.0, 0
+    for y in range(h):
+        for x in range(w):
+            for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+                yy, xx = y + dy, x + dx
+                if yy < h and 0 <= xx < w:
+                    total += _squared_difference(features, y, x, yy, xx)
+                    pairs += 1
+    beta = 1.0 / (2.0 * total / max(pairs, 1) + 1e-12)
+    fixed = np.rint(_NATS_TO_CAPACITY * (_MAX_NATS + 8 * smoothness)) + 8
+    indptr = np.zeros(n + 3, np.int32)
+    indices = np.empty(9 * n + n, np.int32)
+    capacity = np.empty(9 * n + n, np.int32)
+    to_stone = np.empty(n, np.int32)
+    k = 0
+    for y in range(h):
+        for x in range(w):
+            i = y * w + x
+            for dy, dx in _NEIGHBOURS:
+                yy, xx = y + dy, x + dx
+                if 0 <= yy < h and 0 <= xx < w:
+                    distance = 1.0 if dy == 0 or dx == 0 else np.sqrt(2.0)
+                    weight = _NATS_TO_CAPACITY * smoothness * np.exp(-beta * _squared_difference(features, y, x, yy, xx))
+                    indices[k] = yy * w + xx
+                    capacity[k] = np.int32(np.rint(weight / distance)) + 1
+                    k += 1
+            nats = min(max(evidence[y, x], -_MAX_NATS), _MAX_NATS)
+            to_stone[i] = np.int32(np.rint(_NATS_TO_CAPACITY * max(nats, 0.0)))
+            to_background = fixed if fixed_background[y, x] else np.rint(_NATS_TO_CAPACITY * max(-nats, 0.0))
+            if to_background > 0:
+                indices[k] = n + 1
+                capacity[k] = np.int32(to_background)
+                k += 1
+            indptr[i + 1] = k
+    for i in range(n):
+        if to_stone[i] > 0:
+            indices[k] = i
+            capacity[k] = to_stone[i]
+            k += 1
+    indptr[n + 1] = k
+    indptr[n + 2] = k
+    return indptr, indices[:k], capacity[:k]
+
+
+@njit(cache=True)
+def _source_side(indptr, indices, capacity, flow_indptr, flow_indices, flow, source):
+    """[nodes] bool: reachable from `source` along edges with capacity left after `flow` (the minimum cut's
+    source side). Both are CSRs with sorted rows; an edge in only one of them has 0 in the other."""
+    nodes = indptr.shape[0] - 1
+    reached = np.zeros(nodes, np.bool_)
+    queue = np.empty(nodes, np.int64)
+    reached[source] = True
+    queue[0] = source
+    head, tail = 0, 1
+    while head < tail:
+        u = queue[head]
+        head += 1
+        i, i_end, e, e_end = indptr[u], indptr[u + 1], flow_indptr[u], flow_indptr[u + 1]
+        while i < i_end or e < e_end:
+            v = min(indices[i] if i < i_end else nodes, flow_indices[e] if e < e_end else nodes)
+            left = 0
+            if i < i_end and indices[i] == v:
+                left += capacity[i]
+                i += 1
+            if e < e_end and flow_indices[e] == v:
+                left -= flow[e]
+                e += 1
+            if left > 0 and not reached[v]:
+                reached[v] = True
+                queue[tail] = v
+                tail += 1
+    return reached
+
+
+@njit(cache=True, inline="always")
+def _squared_difference(features, y0, x0, y1, x1):
+    total = np.float32(0.0)
+    for c in range(features.shape[2]):
+        d = features[y0, x0, c] - features[y1, x1, c]
+        total += d * d
+    return total
 
 
 def chroma_chi2(ratio: np.ndarray, variance: np.ndarray) -> np.ndarray:
