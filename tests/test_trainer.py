@@ -15,7 +15,7 @@ from station.errors import BadInputError, TrainingError
 from station.ngs.dataset import OPENGL_TO_OPENCV, downscaled_view, load_scene
 from station.ngs.conventions import ALPHA_MIN, rgb_to_sh
 from station.ngs.infill import InfillConfig
-from station.ngs.losses import LossConfig, alpha_losses
+from station.ngs.losses import LossConfig, alpha_losses, mask_regions, total_loss
 from station.ngs.ngs_schedule import NGSConfig
 from station.ngs.pipeline import write_model
 from station.ngs.raster import rasterization
@@ -187,6 +187,18 @@ def test_loss_terms_vanish_for_a_perfect_alpha_and_switch_off_by_weight():
     opaque_rim = rim.clone()
     opaque_rim[3, 4:12] = 1.0  # only its 0.6 beyond the coverage is stray, weighted by the 0.6 not covered
     torch.testing.assert_close(alpha_losses(opaque_rim, rim, LossConfig())["bg"], 8 * 0.6 * 0.6 / (1 - rim).sum())
+
+
+def test_a_views_mask_regions_kept_from_its_first_draw_give_the_loss_worked_out_afresh(scan, tmp_path):
+    trainer = Trainer(load_scene(scan[0]), TINY, tmp_path)
+    view = trainer.train_views()[3]
+    regions = trainer.loss_regions(3)
+    assert trainer.loss_regions(3) is regions
+    render, alpha = torch.rand(view.height, view.width, 3), torch.rand(view.height, view.width)
+    kept, _ = total_loss(render, alpha, view.target, view.mask, TINY.loss, regions=regions)
+    afresh, _ = total_loss(render, alpha, view.image * view.mask[..., None], view.mask, TINY.loss)
+    assert float(kept) == float(afresh)
+    torch.testing.assert_close(regions.interior, mask_regions(view.mask, TINY.loss).interior, rtol=0, atol=0)
 
 
 def test_ngs_phases_freeze_the_surface_then_the_noise_and_recolour_every_step(scan, tmp_path):

@@ -9,6 +9,7 @@ path it names must resolve inside the scan folder.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import cv2
@@ -36,9 +37,10 @@ class View:
     viewmat: torch.Tensor  # [4, 4] world-to-camera, OpenCV
     K: torch.Tensor  # [3, 3]
 
-    @property
+    @cached_property
     def target(self) -> torch.Tensor:
-        """What a render of the object alone on black should show [H,W,3]: the image times the mask's coverage."""
+        """What a render of the object alone on black should show [H,W,3]: the image times the mask's coverage
+        (kept: training reads it every step)."""
         return self.image if self.mask is None else self.image * self.mask[..., None]
 
     @property

@@ -71,17 +71,31 @@ def erode_mask(mask: torch.Tensor) -> torch.Tensor:
     return -F.max_pool2d(-mask[None, None], kernel_size=3, stride=1, padding=1)[0, 0]
 
 
-def image_loss(render: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None, cfg: LossConfig) -> torch.Tensor:
-    """0.8 L1 + 0.2 (1 - SSIM) on the mask's bounding box; `target` is the object alone on black (View.target)."""
-    if mask is not None:
-        rows, cols = mask_bbox(mask, cfg.crop_threshold)
+@dataclass(frozen=True)
+class MaskRegions:
+    """What the losses read off a view's mask, fixed for the whole run: worked out once per view, not per step."""
+
+    crop: tuple[slice, slice]  # the mask's bounding box (`mask_bbox`)
+    interior: torch.Tensor  # [H, W] the eroded mask (`erode_mask`)
+
+
+def mask_regions(mask: torch.Tensor, cfg: LossConfig) -> MaskRegions:
+    return MaskRegions(mask_bbox(mask, cfg.crop_threshold), erode_mask(mask))
+
+
+def image_loss(render: torch.Tensor, target: torch.Tensor, crop: tuple[slice, slice] | None,
+               cfg: LossConfig) -> torch.Tensor:
+    """0.8 L1 + 0.2 (1 - SSIM) on `crop` (the mask's box; None: the whole image); `target` is the object
+    alone on black (View.target)."""
+    if crop is not None:
+        rows, cols = crop
         render, target = render[rows, cols], target[rows, cols]
     l1 = (render - target).abs().mean()
     return (1 - cfg.ssim_lambda) * l1 + cfg.ssim_lambda * (1 - ssim(render, target))
 
 
-def alpha_losses(alpha: torch.Tensor, mask: torch.Tensor, cfg: LossConfig,
-                 fg_alpha: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+def alpha_losses(alpha: torch.Tensor, mask: torch.Tensor, cfg: LossConfig, fg_alpha: torch.Tensor | None = None,
+                 interior: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """L_bg = sum max(a-M,0)(1-M)/sum(1-M); L_fg = sum (1-a')M_e/sum M_e, a' = fg_alpha or alpha. All [H,W].
 
     M is the stone's coverage, fractional on its edge pixels, where the right alpha is M itself: L_bg
@@ -93,7 +107,7 @@ def alpha_losses(alpha: torch.Tensor, mask: torch.Tensor, cfg: LossConfig,
         stray = (alpha - mask).clamp_min(0)
         terms["bg"] = cfg.bg_weight * (stray * background).sum() / background.sum().clamp_min(1e-6)
     if cfg.fg_weight > 0:
-        interior = erode_mask(mask)
+        interior = erode_mask(mask) if interior is None else interior
         seen = alpha if fg_alpha is None else fg_alpha
         terms["fg"] = cfg.fg_weight * ((1 - seen) * interior).sum() / interior.sum().clamp_min(1e-6)
     return terms
@@ -101,13 +115,16 @@ def alpha_losses(alpha: torch.Tensor, mask: torch.Tensor, cfg: LossConfig,
 
 def total_loss(
     render: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None, cfg: LossConfig,
-    fg_alpha: torch.Tensor | None = None,
+    fg_alpha: torch.Tensor | None = None, regions: MaskRegions | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """render/target [H,W,3], alpha [H,W], mask [H,W] or None (then only the image term).
 
-    fg_alpha: the alpha L_fg judges when it is not the rendered one (NGS: the surface's own share)."""
-    terms = {"image": image_loss(render, target, mask, cfg)}
+    fg_alpha: the alpha L_fg judges when it is not the rendered one (NGS: the surface's own share).
+    regions: `mask_regions(mask, cfg)`, when the caller keeps them per view."""
+    if mask is not None and regions is None:
+        regions = mask_regions(mask, cfg)
+    terms = {"image": image_loss(render, target, None if regions is None else regions.crop, cfg)}
     if mask is not None:
-        terms.update(alpha_losses(alpha, mask, cfg, fg_alpha))
+        terms.update(alpha_losses(alpha, mask, cfg, fg_alpha, regions.interior))
     loss = torch.stack(list(terms.values())).sum()
     return loss, {name: float(value.detach()) for name, value in terms.items()}

@@ -22,7 +22,7 @@ from station.ngs.checkpoint_io import load_training_checkpoint
 from station.ngs.dataset import SceneData, View, downscaled_view
 from station.ngs.gaussians import Gaussians
 from station.ngs.infill import Camera
-from station.ngs.losses import LossConfig, total_loss
+from station.ngs.losses import LossConfig, MaskRegions, mask_regions, total_loss
 from station.ngs.ngs_schedule import NGSConfig, NGSPhases
 from station.ngs.raster import rasterization
 from station.ngs.resolution import ResolutionConfig, resolution_decision
@@ -121,6 +121,7 @@ class Trainer:
         self.cameras = [Camera(v.viewmat, v.K, v.width, v.height) for v in self.scene.train]
         self.resolution_checks: list[dict] = []  # every check of the training level; the level follows from them
         self._levels: dict[int, list[View]] = {1: self.scene.train}
+        self._regions: dict[tuple[int, int], MaskRegions] = {}  # (level, view index) -> its mask's loss regions
         self.step = 0
         self.seconds = 0.0
         self.losses: list[dict] = []
@@ -157,6 +158,17 @@ class Trainer:
             self._levels[self.level_downscale] = [downscaled_view(v, self.level_downscale) for v in self.scene.train]
         return self._levels[self.level_downscale]
 
+    def loss_regions(self, index: int) -> MaskRegions | None:
+        """The loss regions of training view `index` at the current level, worked out on its first draw."""
+        key = (self.level_downscale, index)
+        if key not in self._regions:
+            mask = self.train_views()[index].mask
+            if mask is None:
+                return None
+            with self.device:
+                self._regions[key] = mask_regions(mask, self.cfg.loss)
+        return self._regions[key]
+
     @property
     def target_steps(self) -> int:
         """The planned steps plus one block of eval_every for every extension decided so far."""
@@ -175,7 +187,8 @@ class Trainer:
         """One image, one Adam step; densification and NGS hooks around it."""
         check_finite(step, {f"parameter {k}": v for k, v in self.model.params.items()})
         views = self.train_views()
-        view = views[int(torch.randint(len(views), (1,), generator=self.generator, device="cpu"))]
+        index = int(torch.randint(len(views), (1,), generator=self.generator, device="cpu"))
+        view = views[index]
         frozen = bool(self.ngs and self.ngs.surface_frozen(step))
         for p in self.model.params.values():
             p.requires_grad_(not frozen)
@@ -199,7 +212,8 @@ class Trainer:
         alpha = alphas[0, ..., 0]
         surface_alpha = alpha - colors[0, ..., 3] if surface_fg else None
         with self.device:  # losses.py and strategy.py create tensors without naming a device
-            loss, terms = total_loss(colors[0, ..., :3], alpha, view.target, view.mask, self.cfg.loss, surface_alpha)
+            loss, terms = total_loss(colors[0, ..., :3], alpha, view.target, view.mask, self.cfg.loss, surface_alpha,
+                                     self.loss_regions(index))
         check_finite(step, {"loss": loss})
         if loss.requires_grad:  # False only when the surface is frozen and no noise survived
             loss.backward()
