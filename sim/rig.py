@@ -24,7 +24,8 @@ from sim.ptp_camera import CaptureSettings, SimPtpCamera
 from sim.scene import World, frame_source, render
 from sim.sensor import SensorModel
 from sim.stone import Stone, load_stone_mesh, procedural_stone
-from sim.truth import TruthImage, add_truth_image_file, write_truth_frame, write_truth_image
+from sim.truth import (TruthFrame, TruthImage, add_truth_image_file, image_path_for, write_truth_frames,
+                       write_truth_image)
 from sim.usb_backend import SimUsbBackend
 from station.capture.ptp import PtpCamera, open_ptp_camera
 from station.capture.still import PtpStillCamera
@@ -80,22 +81,24 @@ class SimRig:
         and the truth must say where the camera really was; masks rendered at exposure are reused.
         Frames shot by an earlier (killed) run were not seen by this rig and are rendered anew.
         """
+        frames, staged_images = [], []
         for entry in scan.read_manifest():
-            elevation, azimuth, mask, staged = entry.elevation_deg, entry.azimuth_deg, None, None
+            elevation, azimuth, mask = entry.elevation_deg, entry.azimuth_deg, None
             if entry.kind == "plate":
                 mask = np.zeros((self.world.rig.height, self.world.rig.width), dtype=bool)
             else:
                 exposed = _nearest_shot(self.shots, entry.elevation_deg, entry.azimuth_deg)
                 if exposed is not None:
                     elevation, azimuth, mask, staged = exposed
-            was_present = self.world.stone_present
-            self.world.stone_present = entry.kind == "shot"
-            try:
-                write_truth_frame(scan.root, self.world, entry.file, elevation, azimuth, mask=mask)
-            finally:
-                self.world.stone_present = was_present
-            if staged is not None:
-                add_truth_image_file(scan.root, entry.file, staged)
+                    staged_images.append((entry.file, staged))
+                else:  # written now: a resumed scan may have many, and each image is megabytes
+                    out = render(self.world, elevation, azimuth, stone_present=True, supersample=2)
+                    mask = out.mask
+                    write_truth_image(image_path_for(scan.root, entry.file), TruthImage.of(out))
+            frames.append(TruthFrame(entry.file, elevation, azimuth, mask))
+        write_truth_frames(scan.root, self.world, frames)
+        for file, staged in staged_images:
+            add_truth_image_file(scan.root, file, staged)
 
     def close(self) -> None:
         self.ptp.close()
@@ -165,7 +168,7 @@ def direct_scan(
     """A scan as capture leaves it (raw DNGs with one plate per ring, manifest, scan.json, sim_truth/), rendered
     straight at the planned poses without the emulated board and camera: quick, for benches and tests."""
     world, sensor, scan = World(stone, rig, lens=lens), SensorModel(lens=lens), ScanFolder(root)
-    entries = []
+    entries, frames = [], []
     for i, elevation in enumerate(elevations):
         for j in [None, *range(azimuths)]:
             azimuth = 0.0 if j is None else 360.0 * j / azimuths
@@ -176,8 +179,10 @@ def direct_scan(
             atomic_write_bytes(scan.root / name, data)
             kind = "plate" if j is None else "shot"
             entries.append(ManifestEntry(name, sha256_bytes(data), elevation, azimuth, kind, exposure_s, 100, ""))
-            image = TruthImage.of(out) if j is not None else None
-            write_truth_frame(scan.root, world, name, elevation, azimuth, mask=out.mask, image=image)
+            if j is not None:
+                write_truth_image(image_path_for(scan.root, name), TruthImage.of(out))
+            frames.append(TruthFrame(name, elevation, azimuth, out.mask))
+    write_truth_frames(scan.root, world, frames)
     scan.write_manifest(entries)
     atomic_write_json(scan.scan_json, {"rig": rig.to_dict(), "plan": {"elevations_deg": list(elevations),
                                                                       "azimuths": azimuths}})

@@ -5,7 +5,7 @@ file, 4x4 camera-to-world in OpenCV convention, K, the lens's distortion k1, k2,
 height), masks/<stem>.png (8-bit, 255 = stone) and images/<stem>.exr, the noise-free image an ideal
 develop makes of the shot (`TruthImage`);
 images_<W>w/ holds it at a training width W, made on first use by `true_images_at`. Frames are added
-one at a time by `write_truth_frame` so a scan that resumes after a crash adds its new frames without
+by `write_truth_frames` (or one at a time) so a scan that resumes after a crash adds its new frames without
 rewriting the ones it already has; every write is atomic.
 """
 
@@ -172,6 +172,18 @@ def write_truth_mesh(scan_root: Path, world: World) -> None:
     atomic_write_with(mesh_path, lambda tmp: world.stone.mesh.export(tmp, file_type="ply"))
 
 
+@dataclass(frozen=True)
+class TruthFrame:
+    """One frame's truth to write: where the camera was, and its mask and image from the render that made the
+    frame (None: rendered here at this pose; plates get an empty mask, as the stone was not there)."""
+
+    file: str
+    elevation_deg: float
+    azimuth_deg: float
+    mask: np.ndarray | None = None  # [H, W] bool
+    image: TruthImage | None = None
+
+
 def write_truth_frame(
     scan_root: Path,
     world: World,
@@ -181,28 +193,35 @@ def write_truth_frame(
     mask: np.ndarray | None = None,
     image: TruthImage | None = None,
 ) -> None:
-    """Add or replace one frame's camera, true mask and truth image; writes mesh.ply first if it is missing.
+    """Add or replace one frame's camera, true mask and truth image; writes mesh.ply first if it is missing."""
+    write_truth_frames(scan_root, world, [TruthFrame(file, elevation_deg, azimuth_deg, mask, image)])
 
-    `mask` [H, W] bool and `image` are from the render that made the frame (saves a render); without a
-    mask the frame is rendered at this pose for both. Plates get an empty mask, as the stone was not there.
-    """
+
+def write_truth_frames(scan_root: Path, world: World, frames: Sequence[TruthFrame]) -> None:
+    """Add or replace these frames' cameras, true masks and truth images; writes mesh.ply first if it is missing.
+
+    cameras.json is rewritten once for all of them: frame by frame, a 246-frame scan rewrote it 246 times."""
     scan_root = Path(scan_root)
-    ScanFolder(scan_root).resolve_inside(file)
+    for frame in frames:
+        ScanFolder(scan_root).resolve_inside(frame.file)
     mesh_path, cameras_path, _ = _truth_paths(scan_root)
     if not mesh_path.exists():
         write_truth_mesh(scan_root, world)
-    if mask is None:
-        out = render(world, elevation_deg, azimuth_deg, supersample=2)
-        mask, image = out.mask, TruthImage.of(out)
-    if image is not None:
-        write_truth_image(image_path_for(scan_root, file), image)
-    if mask.shape != (world.rig.height, world.rig.width):
-        raise ScanFolderError(f"{file}: mask is {mask.shape}, the rig makes {world.rig.height}x{world.rig.width}")
-    png = Image.fromarray(np.where(mask, 255, 0).astype(np.uint8))
-    atomic_write_with(mask_path_for(scan_root, file), lambda tmp: png.save(tmp, format="PNG"))
-    frames = [f for f in _read_cameras(cameras_path) if f.get("file") != file]
-    frames.append(_camera_record(world, file, elevation_deg, azimuth_deg))
-    atomic_write_json(cameras_path, {"frames": sorted(frames, key=lambda f: str(f["file"]))})
+    for frame in frames:
+        mask, image = frame.mask, frame.image
+        if mask is None:
+            out = render(world, frame.elevation_deg, frame.azimuth_deg, supersample=2)
+            mask, image = out.mask, TruthImage.of(out)
+        if image is not None:
+            write_truth_image(image_path_for(scan_root, frame.file), image)
+        if mask.shape != (world.rig.height, world.rig.width):
+            raise ScanFolderError(f"{frame.file}: mask is {mask.shape}, the rig makes {world.rig.height}x{world.rig.width}")
+        png = Image.fromarray(np.where(mask, 255, 0).astype(np.uint8))
+        atomic_write_with(mask_path_for(scan_root, frame.file), lambda tmp, png=png: png.save(tmp, format="PNG"))
+    written = {frame.file for frame in frames}
+    records = [f for f in _read_cameras(cameras_path) if f.get("file") not in written]
+    records += [_camera_record(world, f.file, f.elevation_deg, f.azimuth_deg) for f in frames]
+    atomic_write_json(cameras_path, {"frames": sorted(records, key=lambda f: str(f["file"]))})
 
 
 def write_sim_truth(scan_root: Path, world: World, frames: Sequence[Frame]) -> None:

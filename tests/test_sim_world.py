@@ -22,7 +22,8 @@ from sim.scene import CHART_LINEAR_SRGB, World, camera_rays, frame_source, rende
 from sim.sensor import SensorModel
 from sim.stone import BACKDROP_ALBEDO, LOOKS, load_stone_mesh, procedural_stone
 from sim.truth import (
-    TruthImage, image_path_for, mask_path_for, read_truth_image, true_images_at, write_sim_truth, write_truth_frame,
+    TruthFrame, TruthImage, image_path_for, mask_path_for, read_truth_image, true_images_at, write_sim_truth,
+    write_truth_frame, write_truth_frames,
 )
 from station.errors import BadInputError, ScanFolderError
 from station.rig_geometry import RigGeometry, camera_to_turntable
@@ -326,6 +327,18 @@ def test_truth_frames_are_added_one_by_one_on_resume(world, tmp_path):
     assert [(c["file"], c["azimuth_deg"]) for c in cameras] == [("raw/a.dng", 0.0), ("raw/b.dng", 18.0)]
     assert (tmp_path / "sim_truth" / "mesh.ply").is_file()
     assert sorted(p.name for p in (tmp_path / "sim_truth" / "masks").iterdir()) == ["a.png", "b.png"]
+
+
+def test_a_batch_of_truth_frames_replaces_its_own_and_keeps_the_others(world, tmp_path):
+    write_truth_frame(tmp_path, world, "raw/a.dng", 20.0, 0.0)
+    write_truth_frame(tmp_path, world, "raw/b.dng", 20.0, 9.0)
+    empty = np.zeros((world.rig.height, world.rig.width), bool)
+    write_truth_frames(tmp_path, world, [TruthFrame("raw/c.dng", 20.0, 27.0, empty),
+                                         TruthFrame("raw/b.dng", 20.0, 18.0, empty)])
+    cameras = json.loads((tmp_path / "sim_truth" / "cameras.json").read_text())["frames"]
+    assert [(c["file"], c["azimuth_deg"]) for c in cameras] == [("raw/a.dng", 0.0), ("raw/b.dng", 18.0),
+                                                                ("raw/c.dng", 27.0)]
+    assert not cv2.imread(str(tmp_path / "sim_truth" / "masks" / "b.png"), cv2.IMREAD_GRAYSCALE).any()
 
 
 def test_truth_refuses_frames_outside_the_scan_folder(world, tmp_path):
