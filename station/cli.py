@@ -227,9 +227,11 @@ def demo(
 ) -> None:
     """The main job on embedded defaults: the simulated rig scans a stone, then process, train, export, gate."""
     from station.cli_scan import run_sim_scan
+    from station.ngs.warmup import start_kernel_warmup
 
     scan_dir = out / "scan"
     started = time.monotonic()
+    start_kernel_warmup()  # compiles training's kernels on the core the scan leaves free (a fresh install's minute)
     with progress_reporter("scan") as progress:
         run_sim_scan(scan_dir, None, 6, 40, DEMO_SENSOR, 0.05, progress)
     err_console.print(f"scan: {time.monotonic() - started:.0f} s")

@@ -9,10 +9,12 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+import numba
 import torch
 
 from station.errors import BadInputError, TrainingError
 from station.ngs.dataset import OPENGL_TO_OPENCV, downscaled_view, load_scene
+from station.ngs import _kernels, _project_kernels
 from station.ngs.conventions import ALPHA_MIN, rgb_to_sh
 from station.ngs.infill import InfillConfig
 from station.ngs.losses import LossConfig, alpha_losses, mask_regions, total_loss
@@ -26,6 +28,7 @@ from station.ngs.sh_degree import cut_to_degree, sh_degree_choice
 from station.ngs.stopping import ExtendConfig, extension_decision
 from station.ngs.strategy import DefaultStrategy, DensifyConfig
 from station.ngs.trainer import TrainConfig, Trainer
+from station.ngs.warmup import exercise_kernels
 from test_ngs_infill import ring_cameras, sphere_surface
 from test_sos import write_inria_ply
 
@@ -199,6 +202,25 @@ def test_a_views_mask_regions_kept_from_its_first_draw_give_the_loss_worked_out_
     afresh, _ = total_loss(render, alpha, view.image * view.mask[..., None], view.mask, TINY.loss)
     assert float(kept) == float(afresh)
     torch.testing.assert_close(regions.interior, mask_regions(view.mask, TINY.loss).interior, rtol=0, atol=0)
+
+
+def kernel_signatures() -> dict[str, set]:
+    """Every rasteriser kernel's compiled (or cache-loaded) argument types in this process."""
+    return {f"{module.__name__}.{name}": set(kernel.signatures) for module in (_kernels, _project_kernels)
+            for name, kernel in vars(module).items() if isinstance(kernel, numba.core.registry.CPUDispatcher)}
+
+
+def test_training_through_the_infill_and_a_held_out_render_calls_no_kernel_the_warmup_did_not(scan, tmp_path):
+    """What the warm-up compiles (in its own process, beside the scan) is what training calls, so a fresh
+    install's training loads every kernel from the cache."""
+    exercise_kernels()
+    warmed = kernel_signatures()
+    trainer = Trainer(load_scene(scan[0]), TINY, tmp_path)
+    for step in range(trainer.ngs.build_step + 2):
+        trainer.train_step(step)
+    trainer.held_out()
+    assert trainer.ngs.infill is not None
+    assert kernel_signatures() == warmed
 
 
 def test_ngs_phases_freeze_the_surface_then_the_noise_and_recolour_every_step(scan, tmp_path):

@@ -1,0 +1,47 @@
+"""Compile the rasteriser's kernels before training needs them, in a process of its own.
+
+numba compiles a kernel on its first call and keeps it in its on-disk cache. On a fresh install that first
+call is training's first step, which then spends the best part of a minute compiling on one core before
+anything trains. `start_kernel_warmup` runs every kernel once on a tiny scene in a spawned process, so the
+compile overlaps work that leaves a core free (a scan waits on the turntable and the camera; develop and
+posing wait on files). Training then loads the kernels from the cache. With a warm cache it costs the
+spawned process a few seconds of loading.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from multiprocessing.process import BaseProcess
+
+import torch
+
+from station.ngs.raster import median_depth, pixel_contributors, rasterization
+
+
+def exercise_kernels() -> None:
+    """Every rasteriser kernel once, with the argument types training passes: float32, SH coefficients, an
+    extra channel (NGS's noise flag), a backward pass, and the infill's depth and contributor queries."""
+    generator = torch.Generator().manual_seed(0)
+    n, size = 64, 32
+    means = ((torch.rand(n, 3, generator=generator) - 0.5) * 0.5).requires_grad_()
+    quats = torch.randn(n, 4, generator=generator).requires_grad_()
+    scales = torch.full((n, 3), 0.05).requires_grad_()
+    opacities = torch.full((n,), 0.5).requires_grad_()
+    coeffs = (0.1 * torch.randn(n, 4, 3, generator=generator)).requires_grad_()
+    viewmat = torch.eye(4)
+    viewmat[2, 3] = 2.0
+    K = torch.tensor([[40.0, 0.0, size / 2], [0.0, 40.0, size / 2], [0.0, 0.0, 1.0]])
+    for extra in (None, torch.ones(n, 1)):
+        colors, alphas, _ = rasterization(means, quats, scales, opacities, coeffs, viewmat[None], K[None], size, size,
+                                          sh_degree=1, extra=extra)
+        (colors.sum() + alphas.sum()).backward()
+    surface = [t.detach() for t in (means, quats, scales, opacities)]
+    median_depth(*surface, viewmat, K, size, size, alpha_level=torch.full((size, size), 0.5))
+    pixel_contributors(*surface, viewmat, K, size, size)
+
+
+def start_kernel_warmup() -> BaseProcess:
+    """`exercise_kernels` in a spawned daemon process (it ends with this one); returns the process."""
+    process = multiprocessing.get_context("spawn").Process(target=exercise_kernels, name="kernel-warmup", daemon=True)
+    process.start()
+    return process
