@@ -28,7 +28,7 @@ from station.ngs.sh_degree import cut_to_degree, sh_degree_choice
 from station.ngs.stopping import ExtendConfig, extension_decision
 from station.ngs.strategy import DefaultStrategy, DensifyConfig
 from station.ngs.trainer import TrainConfig, Trainer
-from station.ngs.warmup import exercise_kernels
+from station.ngs.warmup import exercise_kernels, start_kernel_warmup
 from test_ngs_infill import ring_cameras, sphere_surface
 from test_sos import write_inria_ply
 
@@ -221,6 +221,12 @@ def test_training_through_the_infill_and_a_held_out_render_calls_no_kernel_the_w
     trainer.held_out()
     assert trainer.ngs.infill is not None
     assert kernel_signatures() == warmed
+
+
+def test_the_warmup_runs_in_a_process_of_its_own_and_ends_by_itself():
+    process = start_kernel_warmup()
+    process.join(timeout=400)  # a fresh clone compiles here, into this worker's numba cache
+    assert process.exitcode == 0
 
 
 def test_ngs_phases_freeze_the_surface_then_the_noise_and_recolour_every_step(scan, tmp_path):
