@@ -202,8 +202,9 @@ def write_truth_frames(scan_root: Path, world: World, frames: Sequence[TruthFram
 
     cameras.json is rewritten once for all of them: frame by frame, a 246-frame scan rewrote it 246 times."""
     scan_root = Path(scan_root)
+    scan = ScanFolder(scan_root)
     for frame in frames:
-        ScanFolder(scan_root).resolve_inside(frame.file)
+        scan.resolve_inside(frame.file)
     mesh_path, cameras_path, _ = _truth_paths(scan_root)
     if not mesh_path.exists():
         write_truth_mesh(scan_root, world)

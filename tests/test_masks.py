@@ -14,8 +14,8 @@ from scipy.sparse.csgraph import maximum_flow
 
 from station.errors import BadInputError
 from station.process.images_io import read_exr, read_mask_png, read_png16
-from station.process.masks import (Matte, MaskSettings, check_masks, compute_mask, compute_matte, min_cut, shadow_field,
-                                   unmix)
+from station.process.masks import (_MAX_NATS, _NATS_TO_CAPACITY, Matte, MaskSettings, check_masks, compute_mask,
+                                   compute_matte, min_cut, shadow_field, unmix)
 from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, sha256_bytes
 
 
@@ -259,16 +259,16 @@ def reference_cut_graph(evidence: np.ndarray, features: np.ndarray, smoothness: 
     beta = 1.0 / (2.0 * np.mean(np.concatenate([p[2] for p in pairs])) + 1e-12)
     rows, cols, capacity = [], [], []
     for a, b, squared, distance in pairs:
-        weight = np.rint(100 * smoothness * np.exp(-beta * squared) / distance) + 1
+        weight = np.rint(_NATS_TO_CAPACITY * smoothness * np.exp(-beta * squared) / distance) + 1
         rows += [a, b]
         cols += [b, a]
         capacity += [weight, weight]
-    nats = np.clip(evidence.ravel(), -50.0, 50.0)
-    to_background = np.where(fixed_background.ravel(), np.rint(100 * (50.0 + 8 * smoothness)) + 8,
-                             np.rint(100 * np.maximum(-nats, 0.0)))
+    nats = np.clip(evidence.ravel(), -_MAX_NATS, _MAX_NATS)
+    to_background = np.where(fixed_background.ravel(), np.rint(_NATS_TO_CAPACITY * (_MAX_NATS + 8 * smoothness)) + 8,
+                             np.rint(_NATS_TO_CAPACITY * np.maximum(-nats, 0.0)))
     rows += [np.full(n, n), index.ravel()]
     cols += [index.ravel(), np.full(n, n + 1)]
-    capacity += [np.rint(100 * np.maximum(nats, 0.0)), to_background]
+    capacity += [np.rint(_NATS_TO_CAPACITY * np.maximum(nats, 0.0)), to_background]
     return sparse.csr_array((np.concatenate(capacity).astype(np.int32), (np.concatenate(rows), np.concatenate(cols))),
                             shape=(n + 2, n + 2))
 

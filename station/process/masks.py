@@ -298,58 +298,75 @@ def min_cut(evidence: np.ndarray, features: np.ndarray, smoothness: float, fixed
     return stone[:n].reshape(h, w)
 
 
-_NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))  # in column order
+_PAIRS = ((0, 1), (1, 0), (1, 1), (1, -1))  # each neighbour pair once, stored at its first pixel in row-major order
+# A pixel's 8 neighbours in column order, each as (pixel the pair is stored at, relative to this one; its pair)
+_NEIGHBOURS = (((-1, -1), 2), ((-1, 0), 1), ((-1, 1), 3), ((0, -1), 0), ((0, 0), 0), ((0, 0), 3), ((0, 0), 1),
+               ((0, 0), 2))
+_NEIGHBOUR_OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 
 
 @njit(cache=True)
 def _cut_graph(evidence, features, smoothness, fixed_background):
     """The cut's graph in CSR (rows sorted, int32 capacities): pixels, then the source (stone) and the sink.
 
-    Built in one pass per row instead of as numpy pair lists, whose assembly cost as much as the max-flow."""
+    Built in one pass per row instead of as numpy pair lists, whose assembly cost as much as the max-flow.
+    Each neighbour pair's capacity is worked out once and read by both of its pixels."""
     h, w = evidence.shape
     n = h * w
+    squared = np.zeros((h, w, 4), np.float32)
     total, pairs = 0.0, 0
     for y in range(h):
         for x in range(w):
-            for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-                yy, xx = y + dy, x + dx
+            for k in range(4):
+                yy, xx = y + _PAIRS[k][0], x + _PAIRS[k][1]
                 if yy < h and 0 <= xx < w:
-                    total += _squared_difference(features, y, x, yy, xx)
+                    difference = np.float32(0.0)
+                    for c in range(features.shape[2]):
+                        d = features[y, x, c] - features[yy, xx, c]
+                        difference += d * d
+                    squared[y, x, k] = difference
+                    total += difference
                     pairs += 1
     beta = 1.0 / (2.0 * total / max(pairs, 1) + 1e-12)
+    pair_capacity = np.empty((h, w, 4), np.int32)
+    for y in range(h):
+        for x in range(w):
+            for k in range(4):
+                distance = 1.0 if _PAIRS[k][0] == 0 or _PAIRS[k][1] == 0 else np.sqrt(2.0)
+                weight = _NATS_TO_CAPACITY * smoothness * np.exp(-beta * squared[y, x, k])
+                pair_capacity[y, x, k] = np.int32(np.rint(weight / distance)) + 1
     fixed = np.rint(_NATS_TO_CAPACITY * (_MAX_NATS + 8 * smoothness)) + 8
     indptr = np.zeros(n + 3, np.int32)
-    indices = np.empty(9 * n + n, np.int32)
-    capacity = np.empty(9 * n + n, np.int32)
+    indices = np.empty(10 * n, np.int32)  # at most 8 neighbours and the sink per pixel, then the source's row
+    capacity = np.empty(10 * n, np.int32)
     to_stone = np.empty(n, np.int32)
-    k = 0
+    e = 0
     for y in range(h):
         for x in range(w):
             i = y * w + x
-            for dy, dx in _NEIGHBOURS:
-                yy, xx = y + dy, x + dx
+            for j in range(8):
+                yy, xx = y + _NEIGHBOUR_OFFSETS[j][0], x + _NEIGHBOUR_OFFSETS[j][1]
                 if 0 <= yy < h and 0 <= xx < w:
-                    distance = 1.0 if dy == 0 or dx == 0 else np.sqrt(2.0)
-                    weight = _NATS_TO_CAPACITY * smoothness * np.exp(-beta * _squared_difference(features, y, x, yy, xx))
-                    indices[k] = yy * w + xx
-                    capacity[k] = np.int32(np.rint(weight / distance)) + 1
-                    k += 1
+                    (sy, sx), k = _NEIGHBOURS[j]
+                    indices[e] = yy * w + xx
+                    capacity[e] = pair_capacity[y + sy, x + sx, k]
+                    e += 1
             nats = min(max(evidence[y, x], -_MAX_NATS), _MAX_NATS)
             to_stone[i] = np.int32(np.rint(_NATS_TO_CAPACITY * max(nats, 0.0)))
             to_background = fixed if fixed_background[y, x] else np.rint(_NATS_TO_CAPACITY * max(-nats, 0.0))
             if to_background > 0:
-                indices[k] = n + 1
-                capacity[k] = np.int32(to_background)
-                k += 1
-            indptr[i + 1] = k
+                indices[e] = n + 1
+                capacity[e] = np.int32(to_background)
+                e += 1
+            indptr[i + 1] = e
     for i in range(n):
         if to_stone[i] > 0:
-            indices[k] = i
-            capacity[k] = to_stone[i]
-            k += 1
-    indptr[n + 1] = k
-    indptr[n + 2] = k
-    return indptr, indices[:k], capacity[:k]
+            indices[e] = i
+            capacity[e] = to_stone[i]
+            e += 1
+    indptr[n + 1] = e
+    indptr[n + 2] = e
+    return indptr, indices[:e], capacity[:e]
 
 
 @njit(cache=True)
@@ -380,15 +397,6 @@ def _source_side(indptr, indices, capacity, flow_indptr, flow_indices, flow, sou
                 queue[tail] = v
                 tail += 1
     return reached
-
-
-@njit(cache=True, inline="always")
-def _squared_difference(features, y0, x0, y1, x1):
-    total = np.float32(0.0)
-    for c in range(features.shape[2]):
-        d = features[y0, x0, c] - features[y1, x1, c]
-        total += d * d
-    return total
 
 
 def chroma_chi2(ratio: np.ndarray, variance: np.ndarray) -> np.ndarray:
