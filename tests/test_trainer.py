@@ -14,7 +14,7 @@ import torch
 
 from station.errors import BadInputError, TrainingError
 from station.ngs.dataset import OPENGL_TO_OPENCV, downscaled_view, load_scene
-from station.ngs import _kernels, _project_kernels
+from station.ngs import _kernels, _project_kernels, _ssim_kernels
 from station.ngs.conventions import ALPHA_MIN, rgb_to_sh
 from station.ngs.infill import InfillConfig
 from station.ngs.losses import LossConfig, alpha_losses, mask_regions, total_loss
@@ -205,8 +205,9 @@ def test_a_views_mask_regions_kept_from_its_first_draw_give_the_loss_worked_out_
 
 
 def kernel_signatures() -> dict[str, set]:
-    """Every rasteriser kernel's compiled (or cache-loaded) argument types in this process."""
-    return {f"{module.__name__}.{name}": set(kernel.signatures) for module in (_kernels, _project_kernels)
+    """Every training kernel's compiled (or cache-loaded) argument types in this process."""
+    modules = (_kernels, _project_kernels, _ssim_kernels)
+    return {f"{module.__name__}.{name}": set(kernel.signatures) for module in modules
             for name, kernel in vars(module).items() if isinstance(kernel, numba.core.registry.CPUDispatcher)}
 
 

@@ -1,4 +1,4 @@
-"""Compile the rasteriser's kernels before training needs them, in a process of its own.
+"""Compile training's numba kernels (rasteriser, SSIM) before training needs them, in a process of its own.
 
 numba compiles a kernel on its first call and keeps it in its on-disk cache. On a fresh install that first
 call is training's first step, which then spends the best part of a minute compiling on one core before
@@ -16,12 +16,14 @@ from multiprocessing.process import BaseProcess
 
 import torch
 
+from station.ngs.losses import ssim
 from station.ngs.raster import median_depth, pixel_contributors, rasterization
 
 
 def exercise_kernels() -> None:
-    """Every rasteriser kernel once, with the argument types training passes: float32, SH coefficients, an
-    extra channel (NGS's noise flag), a backward pass, and the infill's depth and contributor queries."""
+    """Every training kernel once, with the argument types training passes: float32, SH coefficients, an
+    extra channel (NGS's noise flag), a backward pass, the SSIM loss, and the infill's depth and contributor
+    queries."""
     generator = torch.Generator().manual_seed(0)
     n, size = 64, 32
     means = ((torch.rand(n, 3, generator=generator) - 0.5) * 0.5).requires_grad_()
@@ -35,7 +37,7 @@ def exercise_kernels() -> None:
     for extra in (None, torch.ones(n, 1)):
         colors, alphas, _ = rasterization(means, quats, scales, opacities, coeffs, viewmat[None], K[None], size, size,
                                           sh_degree=1, extra=extra)
-        (colors.sum() + alphas.sum()).backward()
+        (colors.sum() + alphas.sum() + ssim(colors[0, ..., :3], torch.zeros(size, size, 3))).backward()
     surface = [t.detach() for t in (means, quats, scales, opacities)]
     median_depth(*surface, viewmat, K, size, size, alpha_level=torch.full((size, size), 0.5))
     pixel_contributors(*surface, viewmat, K, size, size)
