@@ -14,7 +14,8 @@ from scipy.sparse.csgraph import maximum_flow
 
 from station.errors import BadInputError
 from station.process.images_io import read_exr, read_mask_png, read_png16
-from station.process.masks import (_MAX_NATS, _NATS_TO_CAPACITY, Matte, MaskSettings, check_masks, compute_mask,
+from station.process.masks import (_MAX_NATS, _NATS_TO_CAPACITY, Matte, MaskSettings, check_masks, column_medians,
+                                   compute_mask,
                                    compute_matte, min_cut, shadow_field, unmix)
 from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, sha256_bytes
 
@@ -492,3 +493,13 @@ def test_a_speckled_stone_cut_at_twice_the_training_size_beats_a_cut_at_the_trai
 
     averaged = iou(compute_matte(fine_shot, fine_plate).downscaled(320).mask, truth)
     assert averaged >= iou(compute_mask(shot, plate), truth) + 0.005  # measured: 0.985 against 0.972
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_column_medians_equal_numpys_median_to_the_bit(dtype):
+    rng = np.random.default_rng(4)
+    for rows in (1, 2, 3, 10, 11, 61_596):
+        values = rng.normal(size=(rows, 3)).astype(dtype)
+        values[rows // 3] = values[0]  # ties
+        np.testing.assert_array_equal(column_medians(values), np.median(values, axis=0))
+        assert column_medians(values).dtype == dtype
