@@ -136,6 +136,16 @@ def test_log_scales_and_opacities_out_of_range_are_refused():
         rasterization(means, quats, scales, opacities + 1, colors, viewmats, Ks, 8, 8)
 
 
+def test_a_zero_quaternion_is_refused_and_one_with_zero_components_is_not():
+    means, quats, scales, opacities, colors = gaussians([[0, 0, 2.0], [0.1, 0, 2.0]], [0.1, 0.1, 0.1], [0.5, 0.5])
+    viewmats, Ks = camera(8, 8)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -0.0, 1.0]])
+    rasterization(means, quats, scales, opacities, colors, viewmats, Ks, 8, 8)
+    quats[1] = torch.tensor([0.0, -0.0, 0.0, 0.0])
+    with pytest.raises(BadInputError, match="zero quaternion"):
+        rasterization(means, quats, scales, opacities, colors, viewmats, Ks, 8, 8)
+
+
 def test_row_culling_drops_only_rows_that_composite_nothing():
     """The kernels skip tile rows outside each Gaussian's alpha >= 1/255 ellipse; on thin, tilted, huge and
     barely visible Gaussians that must give the same image, stopping points and gradients as no culling."""
