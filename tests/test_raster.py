@@ -83,6 +83,30 @@ def test_cpu_backend_matches_reference_images_and_gradients(sh_degree, render_mo
         assert_rel_close(grads[name], ref_grads[name], 1e-4, name)
 
 
+def test_gaussians_hidden_behind_opaque_walls_get_no_gradient_and_the_rest_match_the_reference():
+    """The projection's backward skips Gaussians that no pixel reached in a view; that changes no gradient."""
+    width, height = 40, 36
+    scene = random_scene(120, width, height, cameras=2, sh_degree=1, seed=2)
+    walls = 3  # three layers at the alpha cap take every pixel behind them below the stopping transmittance
+    extra = {"means": torch.tensor([[0.0, 0.0, -1.6 - 0.05 * i] for i in range(walls)]),
+             "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(walls, 1),
+             "scales": torch.tensor([[20.0, 20.0, 0.01]]).repeat(walls, 1),
+             "opacities": torch.full((walls,), 0.999),
+             "colors": torch.full((walls, 4, 3), 0.2)}
+    scene.update({k: torch.cat([scene[k], v]) for k, v in extra.items()})
+    _, alpha, _, grads = render_with_grads(scene, width, height, "cpu", sh_degree=1)
+    _, _, _, ref_grads = render_with_grads({k: v.double() for k, v in scene.items()}, width, height, "torch",
+                                           sh_degree=1)
+    hidden = (grads["means2d"] == 0).all(-1).all(0)  # [N]: reached no pixel in either view
+    hidden[-walls:] = False
+    assert hidden.sum() > 50 and alpha.min() > 0.98
+    for name in ("means", "quats", "scales", "colors"):
+        assert (grads[name][hidden] == 0).all()
+    for name in ("means", "quats", "scales", "opacities", "colors"):  # the walls' own float32 gradients are coarse
+        assert_rel_close(grads[name][:-walls], ref_grads[name][:-walls], 1e-4, name)
+    assert_rel_close(grads["means2d"][:, :-walls], ref_grads["means2d"][:, :-walls], 1e-4, "means2d")
+
+
 @pytest.mark.parametrize("render_mode", ["RGB", "RGB+ED"])
 def test_extra_channels_composite_with_the_colour_weights_and_agree_with_the_reference(render_mode):
     width, height = 40, 36

@@ -306,6 +306,24 @@ def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
     g_quats[g, 3] = (gz - z * dot) / nrm
 
 
+@njit(cache=True)
+def _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
+    """Whether Gaussian g has a non-zero upstream gradient in camera c. One hidden in that view (the back of the
+    stone, most of the NGS noise) has none, and its backward would only add zeros: about half of a training step's."""
+    if g_depths[c, g] != 0.0:
+        return True
+    for i in range(2):
+        if g_means2d[c, g, i] != 0.0:
+            return True
+    for i in range(3):
+        if g_conics[c, g, i] != 0.0:
+            return True
+    for i in range(g_colors.shape[2]):
+        if g_colors[c, g, i] != 0.0:
+            return True
+    return False
+
+
 @njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii, colors,
                 g_means2d, g_conics, g_depths, g_colors, want_pose=True):
@@ -338,7 +356,7 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
                     g_cov[i, j] = 0.0
             seen = False
             for c in range(c_n):
-                if radii[c, g] > 0:
+                if radii[c, g] > 0 and _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
                     seen = True
                     for i in range(3):
                         for j in range(3):
