@@ -277,7 +277,7 @@ def test_thread_pools_are_sized_together():
 def test_depth_order_is_a_stable_argsort_with_ties_and_signed_zeros():
     rng = np.random.default_rng(0)
     cases = [rng.normal(3, 1, 5000), np.round(rng.normal(0, 2, 3000), 1), np.array([2.0, -0.0, 0.0, -1e-30, 5.0, -7.0]),
-             np.array([])]
+             np.array([]), np.full(9, 0.5), np.array([1.0]), rng.uniform(0.3, 0.31, 4000)]
     for depths in cases:
         for dtype in (np.float32, np.float64):
             d = depths.astype(dtype)

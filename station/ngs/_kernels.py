@@ -120,30 +120,51 @@ def _row_span(my, ext, y0):
     return np.uint64(r0 * TILE), np.uint64(max(r1, r0) * TILE)
 
 
-U8, U63, RADIX_MASK = np.uint64(8), np.uint64(63), np.uint64(255)
+U8, RADIX_MASK = np.uint64(8), np.uint64(255)
 TILE_U, ONE_U = np.uint64(TILE), np.uint64(1)
+
+
+@njit(cache=True)
+def _order_keys(depths):
+    """uint64 keys in the depths' order: the float bits with the sign bit set, or all bits flipped when negative.
+    float32 depths give 32-bit keys (the high half zero), so their sort needs at most four passes. + 0.0 makes
+    -0.0 tie with 0.0."""
+    n = depths.shape[0]
+    keys = np.empty(n, np.uint64)
+    if depths.itemsize == 4:
+        bits32 = (depths + np.float32(0.0)).view(np.uint32)
+        top32 = np.uint32(1) << np.uint32(31)
+        for i in range(n):
+            b = bits32[i]
+            keys[i] = np.uint64(~b if b >= top32 else b | top32)
+        return keys
+    bits = (depths.astype(np.float64) + 0.0).view(np.uint64)
+    top = np.uint64(1) << np.uint64(63)
+    for i in range(n):
+        b = bits[i]
+        keys[i] = ~b if b >= top else b | top
+    return keys
 
 
 @njit(cache=True)
 def depth_order(depths):
     """Stable argsort of depths (ties keep index order, as a stable merge sort): LSD radix sort, 8 bits a pass,
-    on the float64 bits mapped to an order-preserving uint64; passes where every key shares the digit (the
-    low mantissa of float32 depths) are skipped."""
+    on order-preserving unsigned keys; a pass whose digit every key shares (the unused high half of float32
+    keys, the exponent byte of depths in a narrow range) is skipped."""
     n = depths.shape[0]
-    keys = np.empty(n, np.uint64)
-    bits = (depths.astype(np.float64) + 0.0).view(np.uint64)  # + 0.0 makes -0.0 tie with 0.0, as in a sort
+    keys = _order_keys(depths)
+    same_bits = ~np.uint64(0)
     for i in range(n):
-        b = bits[i]
-        keys[i] = ~b if (b >> U63) != np.uint64(0) else b | (np.uint64(1) << U63)
+        same_bits &= ~(keys[i] ^ keys[0])
     order = np.arange(n)
     scratch = np.empty(n, np.int64)
     for pass_ in range(8):
         shift = np.uint64(pass_) * U8
+        if (~same_bits >> shift) & RADIX_MASK == np.uint64(0):
+            continue
         counts = np.zeros(257, np.int64)
         for i in range(n):
-            counts[((keys[order[i]] >> shift) & RADIX_MASK) + np.uint64(1)] += 1
-        if counts.max() == n:
-            continue
+            counts[((keys[i] >> shift) & RADIX_MASK) + np.uint64(1)] += 1
         for d in range(256):
             counts[d + 1] += counts[d]
         for i in range(n):
@@ -167,6 +188,7 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     extent_y = np.empty(n, np.float64)
     sig = np.empty(n, np.float64)
     hits = np.zeros(n, np.uint64)  # the first pass's hits as bits of the rectangle (row-major) when it has <= 64 tiles
+    rects = np.zeros((n, 4), np.int64)  # and the rectangle, x0 y0 x1 y1
     for g in prange(n):
         sig_max = _sig_max(opacities[g])
         sig[g] = sig_max
@@ -175,6 +197,7 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
             u, v = means2d[g, 0], means2d[g, 1]
             x0, y0, x1, y1 = _hit_rect(u, v, float(radii[g]), float(conics[g, 0]), float(conics[g, 1]),
                                        float(conics[g, 2]), sig[g], tw, th)
+            rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3] = x0, y0, x1, y1
             small = (x1 - x0) * (y1 - y0) <= 64
             bit = np.uint64(0)
             mask = np.uint64(0)
@@ -195,8 +218,7 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     for g in prange(n):
         if counts[g] > 0:
             u, v = means2d[g, 0], means2d[g, 1]
-            x0, y0, x1, y1 = _hit_rect(u, v, float(radii[g]), float(conics[g, 0]), float(conics[g, 1]),
-                                       float(conics[g, 2]), sig[g], tw, th)
+            x0, y0, x1, y1 = rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3]
             small = (x1 - x0) * (y1 - y0) <= 64
             j = gauss_offsets[g]
             bit = np.uint64(0)
