@@ -341,9 +341,9 @@ def cross_check_against(mapped: dict[str, np.ndarray], monkeypatch, tmp_path) ->
     elevation_of = {n: (15.0, 40.0, 65.0)[int(n[1])] for n in names}
     rig_poses = {n: rig.camera_to_world(elevation_of[n], 18.0 * int(n[4:7])) for n in names}
     monkeypatch.setattr(poses.sfm, "write_position_priors", lambda database, priors: None)
-    monkeypatch.setattr(poses.sfm, "map_incremental", lambda *args: object())
+    monkeypatch.setattr(poses.sfm, "map_incremental", lambda *args, **kwargs: object())
     monkeypatch.setattr(poses.sfm, "registered_poses", lambda rec: mapped(rig_poses))
-    return poses._cross_check(tmp_path / "db", tmp_path, tmp_path, rig_poses, elevation_of, rig, PoseSettings())
+    return poses._cross_check(tmp_path / "db", tmp_path, rig_poses, elevation_of, rig, PoseSettings())
 
 
 def turned(c2w: np.ndarray, axis: np.ndarray, degrees: float) -> np.ndarray:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import shutil
 import tempfile
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -149,6 +150,10 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
         flags.append("rig model given but the scan has no manifest angles: pure SfM used")
 
     work = Path(tempfile.mkdtemp(prefix="station-poses-"))
+    # The cross-check's mapping (C++, the GIL released) runs beside the exposure normalisation, undistortion
+    # and outputs, which do not touch the database it reads.
+    background = ThreadPoolExecutor(max_workers=1)
+    cross_check: Future | None = None
     try:
         database = work / "database.db"
         mask_dir = None
@@ -171,9 +176,8 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             report = PoseReport("rig", len(refs), planned, sorted(poses), [], 0, "sfm", 0.0, 0.0, flags=flags)
             if settings.cross_check:
                 elevation_of = {r.name: r.elevation_deg for r in refs}
-                report.cross_check = _cross_check(database, scan.images_dir, work, rig_poses, elevation_of, rig,
-                                                  settings)
-                flags.extend(report.cross_check.pop("flags"))
+                cross_check = background.submit(_cross_check, database, work, rig_poses, elevation_of, rig, settings)
+                cross_check_flags_at = len(flags)
         else:
             scan_rig = _scan_rig(scan)
             camera = None
@@ -221,18 +225,25 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
                 flags.append(f"only {rec.num_points3D()} SfM points and no masks to carve a hull: sparse start")
         report.points = len(xyz)
         _write_outputs(scan, rec if report.init_cloud == "sfm" else None, lens, refs, poses, intr, xyz, rgb)
+        if cross_check is not None:
+            report.cross_check = cross_check.result()
+            flags[cross_check_flags_at:cross_check_flags_at] = report.cross_check.pop("flags")
     finally:
+        background.shutdown(wait=True, cancel_futures=True)  # before `work`, which the mapping writes into, goes
         shutil.rmtree(work, ignore_errors=True)
     report.seconds = time.monotonic() - started
     atomic_write_json(scan.poses_dir / "report.json", report.to_dict())
     return report
 
 
-def _cross_check(database: Path, image_dir: Path, work: Path, rig_poses: dict[str, np.ndarray],
-                 elevation_of: dict[str, float], rig: RigModel, settings: PoseSettings) -> dict:
-    """Free mapping pulled towards the rig centres; the scan drifted if its poses disagree with the rig."""
+def _cross_check(database: Path, work: Path, rig_poses: dict[str, np.ndarray], elevation_of: dict[str, float],
+                 rig: RigModel, settings: PoseSettings) -> dict:
+    """Free mapping pulled towards the rig centres; the scan drifted if its poses disagree with the rig.
+    It reads no image (poses only), so it may run while the images are normalised and undistorted."""
     sfm.write_position_priors(database, {n: p[:3, 3] for n, p in rig_poses.items()})
-    rec = sfm.map_incremental(database, image_dir, work / "cross_check", settings.sfm, True, True)
+    no_images = work / "cross_check_images"  # empty: the mapping is given no image to read
+    no_images.mkdir(exist_ok=True)
+    rec = sfm.map_incremental(database, no_images, work / "cross_check", settings.sfm, True, True, colours=False)
     mapped = sfm.registered_poses(rec) if rec is not None else {}
     out: dict = {"registered": len(mapped), "flags": []}
     missing = sorted(set(rig_poses) - set(mapped))

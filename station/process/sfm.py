@@ -189,9 +189,12 @@ def map_incremental(
     settings: SfmSettings,
     use_priors: bool,
     fix_intrinsics: bool,
+    colours: bool = True,
 ) -> pycolmap.Reconstruction | None:
-    """Free incremental mapping (bounded in time); returns the largest model, or None."""
+    """Free incremental mapping (bounded in time); returns the largest model, or None. Without `colours` it
+    never reads the images (a check that only compares poses, running while the images are rewritten)."""
     options = pycolmap.IncrementalPipelineOptions()
+    options.extract_colors = colours
     options.num_threads = settings.num_threads
     options.max_runtime_seconds = int(settings.max_runtime_s)
     options.random_seed = 0
