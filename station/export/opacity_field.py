@@ -32,9 +32,24 @@ def inverse_covariances(scales: np.ndarray, quats: np.ndarray) -> np.ndarray:
     return np.einsum("nij,nj,nkj->nik", rot, 1.0 / scales**2, rot)
 
 
+@njit(cache=True)
+def _interval(q2, q1, q0, limit):
+    """[lo, hi] where q2 t^2 + 2 q1 t + q0 <= limit (q2 > 0), padded for rounding; (1, 0) when empty."""
+    centre = -q1 / q2
+    room = limit - (q0 + q1 * centre)  # the minimum is at the centre
+    if room < 0.0:
+        return 1.0, 0.0
+    half = math.sqrt(room / q2) * (1.0 + 1e-6) + 1e-12
+    return centre - half, centre + half
+
+
 @njit(parallel=True, cache=True)
 def _log_transmittance(means, inv_cov, opacity, reach, origin, voxel, nx, ny, nz):
-    """sum_i log(1 - alpha_i) at every voxel centre; one x-slab per thread, Gaussians in a fixed order."""
+    """sum_i log(1 - alpha_i) at every voxel centre; one x-slab per thread, Gaussians in a fixed order.
+
+    Each Gaussian visits only the voxels of its alpha >= ALPHA_MIN ellipsoid: per slab the (y) range of its
+    ellipse, per row the (z) range of its chord, bounded by `reach` as well. A flat disc on the surface
+    touched a cube of voxels before, most of them below ALPHA_MIN."""
     out = np.zeros((nx, ny, nz))
     for ix in prange(nx):
         px = origin[0] + ix * voxel
@@ -43,14 +58,24 @@ def _log_transmittance(means, inv_cov, opacity, reach, origin, voxel, nx, ny, nz
             r = reach[i]
             if abs(dx) > r:
                 continue
-            j0 = max(0, int(math.ceil((means[i, 1] - r - origin[1]) / voxel)))
-            j1 = min(ny - 1, int(math.floor((means[i, 1] + r - origin[1]) / voxel)))
-            k0 = max(0, int(math.ceil((means[i, 2] - r - origin[2]) / voxel)))
-            k1 = min(nz - 1, int(math.floor((means[i, 2] + r - origin[2]) / voxel)))
             a, b, c = inv_cov[i, 0, 0], inv_cov[i, 0, 1], inv_cov[i, 0, 2]
             d, e, f = inv_cov[i, 1, 1], inv_cov[i, 1, 2], inv_cov[i, 2, 2]
+            limit = 2.0 * math.log(opacity[i] / ALPHA_MIN)
+            y_lo, y_hi = means[i, 1] - r, means[i, 1] + r
+            schur = d - e * e / f  # m minimised over dz is a quadratic in dy with this leading coefficient
+            if f > 0.0 and schur > 1e-12 * d:
+                lo, hi = _interval(schur, (b - c * e / f) * dx, (a - c * c / f) * dx * dx, limit)
+                y_lo, y_hi = max(y_lo, means[i, 1] + lo), min(y_hi, means[i, 1] + hi)
+            j0 = max(0, int(math.ceil((y_lo - origin[1]) / voxel)))
+            j1 = min(ny - 1, int(math.floor((y_hi - origin[1]) / voxel)))
             for j in range(j0, j1 + 1):
                 dy = origin[1] + j * voxel - means[i, 1]
+                z_lo, z_hi = means[i, 2] - r, means[i, 2] + r
+                if f > 0.0:
+                    lo, hi = _interval(f, c * dx + e * dy, a * dx * dx + 2.0 * b * dx * dy + d * dy * dy, limit)
+                    z_lo, z_hi = max(z_lo, means[i, 2] + lo), min(z_hi, means[i, 2] + hi)
+                k0 = max(0, int(math.ceil((z_lo - origin[2]) / voxel)))
+                k1 = min(nz - 1, int(math.floor((z_hi - origin[2]) / voxel)))
                 for k in range(k0, k1 + 1):
                     dz = origin[2] + k * voxel - means[i, 2]
                     m = a * dx * dx + d * dy * dy + f * dz * dz + 2.0 * (b * dx * dy + c * dx * dz + e * dy * dz)
