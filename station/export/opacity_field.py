@@ -48,8 +48,8 @@ def _log_transmittance(means, inv_cov, opacity, reach, origin, voxel, nx, ny, nz
     """sum_i log(1 - alpha_i) at every voxel centre; one x-slab per thread, Gaussians in a fixed order.
 
     Each Gaussian visits only the voxels of its alpha >= ALPHA_MIN ellipsoid: per slab the (y) range of its
-    ellipse, per row the (z) range of its chord, bounded by `reach` as well. A flat disc on the surface
-    touched a cube of voxels before, most of them below ALPHA_MIN."""
+    ellipse, per row the (z) range of its chord, bounded by `reach` as well: a flat disc on the surface skips
+    the rest of the cube its largest axis spans, where alpha stays below ALPHA_MIN."""
     out = np.zeros((nx, ny, nz))
     for ix in prange(nx):
         px = origin[0] + ix * voxel

@@ -309,7 +309,8 @@ def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
 @njit(cache=True)
 def _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
     """Whether Gaussian g has a non-zero upstream gradient in camera c. One hidden in that view (the back of the
-    stone, most of the NGS noise) has none, and its backward would only add zeros: about half of a training step's."""
+    stone, most of the NGS noise) has none, and its backward would only add zeros: about half of them in an NGS
+    training step."""
     if g_depths[c, g] != 0.0:
         return True
     for i in range(2):
