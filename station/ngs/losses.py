@@ -38,7 +38,7 @@ _TAPS = _gaussian_taps().numpy()
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of two [H,W,C] images in [0,1] ('valid' windows, as fused-ssim in training), differentiable in
-    `a`. On the CPU it runs the numba kernels, a third of the plain-torch graph's time, forward and backward."""
+    `a`. On the CPU it runs the numba kernels: one pass each way instead of a graph of image-sized torch ops."""
     fits = a.shape[0] >= SSIM_WINDOW and a.shape[1] >= SSIM_WINDOW
     if a.device.type == "cpu" and fits and not b.requires_grad:
         return _FusedSSIM.apply(a, b)
