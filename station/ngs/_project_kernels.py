@@ -3,6 +3,12 @@
 As small torch ops these dominated a CPU training step once compositing was fast, so each Gaussian is
 handled in one pass here. Conventions match `raster_reference.project` and `eval_sh` exactly. The
 backward writes per-(camera, Gaussian) pose partials and sums them in a fixed order: deterministic.
+
+Laid out to compile fast on a fresh install: numba's IR-level `inline="always"` types a helper afresh at every
+call site, and the parfor passes walk all that is inlined into a prange body, twice. So each prange body only
+calls a chunk function, and helpers are `forceinline` (typed once, inlined by LLVM). Chunk functions and helpers
+run without NRT (`_nrt=False`; none allocates): with it, every array argument of a call costs an atomic
+reference-count pair per call.
 """
 
 from __future__ import annotations
@@ -11,6 +17,8 @@ import math
 
 import numpy as np
 from numba import njit, prange
+from numba.core.compiler import Compiler
+from numba.core.cpu_options import ParallelOptions
 
 from station.ngs.conventions import EPS2D, SH_C0, SH_C1, SH_C2, SH_C3
 
@@ -18,7 +26,24 @@ C20, C21, C22, C23, C24 = SH_C2
 C30, C31, C32, C33, C34, C35, C36 = SH_C3
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+class _NoAlias(Compiler):
+    """numba's pipeline with LLVM `noalias` on array arguments, which numba gives a prange body it finds free of
+    aliases but offers no option for. No array a chunk function writes overlaps another it gets; without the flag
+    LLVM reloads inputs after every store."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.state.flags.noalias = True
+
+
+# parallel with prange alone: the other passes make each np.zeros a gufunc of its own, seconds of compile for
+# microseconds of work. An options object, not a dict: numba empties a dict as it reads it, and a second signature
+# would get them all.
+PRANGE_ONLY = ParallelOptions({"comprehension": False, "reduction": False, "inplace_binop": False, "setitem": False,
+                               "numpy": False, "stencil": False, "fusion": False})
+
+
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
 def _sh_basis(x, y, z, out):
     """Real SH basis up to degree 3 (gsplat/3DGS signs) at unit direction (x, y, z) into out[16]."""
     xx, yy, zz = x * x, y * y, z * z
@@ -40,7 +65,7 @@ def _sh_basis(x, y, z, out):
     out[15] = C36 * x * (xx - 3 * yy)
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
 def _sh_basis_grad(x, y, z, gx, gy, gz):
     """d basis_k / d(x, y, z) for k < 16 into gx, gy, gz [16]."""
     xx, yy, zz = x * x, y * y, z * z
@@ -65,7 +90,7 @@ def _sh_basis_grad(x, y, z, gx, gy, gz):
     gx[15], gy[15] = C36 * (3 * xx - 3 * yy), -6 * C36 * x * y
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
 def _quat_rot(quats, g, R):
     """Unit rotation from Gaussian g's unnormalised wxyz quaternion into R [3, 3]; returns norm and unit quaternion."""
     q0, q1, q2, q3 = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
@@ -77,18 +102,16 @@ def _quat_rot(quats, g, R):
     return nrm, w, x, y, z
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
 def _mm(A, B, out):
-    """out = A @ B for tiny matrices (numba's @ calls BLAS and allocates: far too slow per Gaussian)."""
+    """out = A @ B for A [r, 3], B [3, 3] (numba's @ calls BLAS and allocates: far too slow per Gaussian). Fixed
+    sizes unroll; shapes as loop bounds make LLVM build vector loops of gathers, slower to run and to compile."""
     for i in range(A.shape[0]):
-        for j in range(B.shape[1]):
-            acc = 0.0
-            for k in range(A.shape[1]):
-                acc += A[i, k] * B[k, j]
-            out[i, j] = acc
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
 def _camera_cov(quats, scales, g, Rw, R, M, cov, covc, tmp):
     """World covariance R S S R^T of Gaussian g and its camera-frame rotation Rw cov Rw^T (into cov, covc)."""
     _quat_rot(quats, g, R)
@@ -104,7 +127,7 @@ def _camera_cov(quats, scales, g, Rw, R, M, cov, covc, tmp):
             covc[i, j] = tmp[i, 0] * Rw[j, 0] + tmp[i, 1] * Rw[j, 1] + tmp[i, 2] * Rw[j, 2]
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
 def _jacobian(x, y, z, fx, fy, cx, cy, width, height):
     """EWA Jacobian entries (J00, J02, J11, J12) with gsplat's 1.3x frustum clamp, and the clamp flags."""
     lxp = (width - cx) / fx + 0.3 * (0.5 * width / fx)
@@ -122,11 +145,10 @@ def _jacobian(x, y, z, fx, fy, cx, cy, width, height):
 CHUNK = 64
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
 def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far,
                  means2d, conics, depths, radii, colors, Rw, s0, s1, s2, covc, s4, basis):
-    """Project Gaussian g into camera c, writing every output slot; s0..s4 are [3, 3] scratch (separate
-    arrays, not slices: a slice costs an atomic refcount pair per call)."""
+    """Project Gaussian g into camera c, writing every output slot; s0..s4 are [3, 3] scratch."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
     x = Rw[0, 0] * means[g, 0] + Rw[0, 1] * means[g, 1] + Rw[0, 2] * means[g, 2] + viewmats[c, 0, 3]
     y = Rw[1, 0] * means[g, 0] + Rw[1, 1] * means[g, 1] + Rw[1, 2] * means[g, 2] + viewmats[c, 1, 3]
@@ -164,7 +186,17 @@ def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, ca
             colors[c, g, ch] = max(acc + 0.5, 0.0)
 
 
-@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
+@njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=_NoAlias)
+def _project_chunk(c, start, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far,
+                   means2d, conics, depths, radii, colors, Rw, scratch):
+    """`_project_one` for Gaussians start .. start + CHUNK - 1 (fewer at the end) in camera c."""
+    s0, s1, s2, s3, s4, basis = scratch
+    for g in range(start, min(means.shape[0], start + CHUNK)):
+        _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height,
+                     near, far, means2d, conics, depths, radii, colors, Rw, s0, s1, s2, s3, s4, basis)
+
+
+@njit(parallel=PRANGE_ONLY, cache=True, error_model="numpy", fastmath=True)
 def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far):
     """-> means2d [C,N,2], conics [C,N,3], depths [C,N], radii [C,N] int32, colors [C,N,3] (SH; zeros if deg < 0)."""
     c_n, n = viewmats.shape[0], means.shape[0]
@@ -177,21 +209,19 @@ def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     for c in range(c_n):
         Rw = viewmats[c, :3, :3].astype(np.float64)
         for chunk in prange((n + CHUNK - 1) // CHUNK):
-            s0, s1, s2, s3, s4 = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
-            basis = np.empty(16)
-            for g in range(chunk * CHUNK, min(n, chunk * CHUNK + CHUNK)):
-                _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height,
-                             near, far, means2d, conics, depths, radii, colors, Rw, s0, s1, s2, s3, s4, basis)
+            scratch = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+                       np.empty(16))
+            _project_chunk(c, chunk * CHUNK, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width,
+                           height, near, far, means2d, conics, depths, radii, colors, Rw, scratch)
     return means2d, conics, depths, radii, colors
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
 def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, colors,
                      upstream, outs, Rw, scratch, want_pose):
     """Backward of `_project_one` for (c, g): adds into outs = (g_means, g_coeffs, g_cov (world covariance),
-    pose_part; written only if want_pose). upstream = (g_means2d, g_conics, g_depths, g_colors). scratch holds [3, 3] buffers but for
-    J, jc [2, 3] and the SH buffers [16]. Tuples keep the call under CPython's 30-argument limit, past
-    which numba cannot inline it (and an outlined call costs a refcount pair per array argument)."""
+    pose_part; written only if want_pose). upstream = (g_means2d, g_conics, g_depths, g_colors). scratch holds
+    [3, 3] buffers but for J, jc [2, 3] and the SH buffers [16]."""
     g_means2d, g_conics, g_depths, g_colors = upstream
     g_means, g_coeffs, g_cov, pose_part = outs
     s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz = scratch
@@ -276,7 +306,7 @@ def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks
                 pose_part[c, g, 12 + i] = -gm[i]
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
 def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
     """Chain d loss / d world covariance into the (unnormalised) quaternion and the scales of Gaussian g."""
     nrm, w, x, y, z = _quat_rot(quats, g, R)
@@ -306,7 +336,7 @@ def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
     g_quats[g, 3] = (gz - z * dot) / nrm
 
 
-@njit(cache=True)
+@njit(cache=True, forceinline=True, _nrt=False)
 def _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
     """Whether Gaussian g has a non-zero upstream gradient in camera c. One hidden in that view (the back of the
     stone, most of the NGS noise) has none, and its backward would only add zeros: about half of them in an NGS
@@ -325,7 +355,32 @@ def _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
     return False
 
 
-@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
+@njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=_NoAlias)
+def _project_bwd_chunk(start, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii,
+                       colors, Rws, upstream, want_pose, outs, g_quats, g_scales, Rw, scratch):
+    """The backward of Gaussians start .. start + CHUNK - 1 (fewer at the end) over every camera; arguments as
+    `_project_one_bwd`'s, Rws [C, 3, 3] the cameras' rotations and Rw [3, 3] scratch."""
+    g_means2d, g_conics, g_depths, g_colors = upstream
+    g_cov = outs[2]
+    s0, s1, gR = scratch[0], scratch[1], scratch[6]
+    for g in range(start, min(means.shape[0], start + CHUNK)):
+        for i in range(3):
+            for j in range(3):
+                g_cov[i, j] = 0.0
+        seen = False
+        for c in range(viewmats.shape[0]):
+            if radii[c, g] > 0 and _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
+                seen = True
+                for i in range(3):
+                    for j in range(3):
+                        Rw[i, j] = Rws[c, i, j]
+                _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width,
+                                 height, colors, upstream, outs, Rw, scratch, want_pose)
+        if seen:
+            _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, s0, s1, gR)
+
+
+@njit(parallel=PRANGE_ONLY, cache=True, error_model="numpy", fastmath=True)
 def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii, colors,
                 g_means2d, g_conics, g_depths, g_colors, want_pose=True):
     """-> g_means [N,3], g_quats [N,4], g_scales [N,3], g_coeffs [N,K,3], g_viewmats [C,4,4], g_campos [C,3]
@@ -338,35 +393,25 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     g_coeffs = np.zeros(coeffs.shape, dt)
     pose_part = np.zeros((c_n, n if want_pose else 0, 15))  # per (camera, Gaussian): d Rw (9), d t (3), d campos (3)
     Rws = np.empty((c_n, 3, 3))
+    # loops here and below, not Rws[c] = viewmats[c, :3, :3] and pose_part.sum(axis=1): those compile error paths
+    # and string code for seconds
     for c in range(c_n):
-        Rws[c] = viewmats[c, :3, :3]
+        for i in range(3):
+            for j in range(3):
+                Rws[c, i, j] = viewmats[c, i, j]
     for chunk in prange((n + CHUNK - 1) // CHUNK):
-        s0, s1, cov, covc, t33 = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
-        g_covc, gR, g_cov = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
-        J, jc = np.empty((2, 3)), np.empty((2, 3))
-        basis, bx, by, bz = np.empty(16), np.empty(16), np.empty(16), np.empty(16)
-        Rw = np.empty((3, 3))
-        # built once per chunk: a tuple of arrays, or a view such as Rws[c], costs an atomic reference count pair
-        # per use, and on arrays both threads share those atomics contend
-        upstream = (g_means2d, g_conics, g_depths, g_colors)
-        outs = (g_means, g_coeffs, g_cov, pose_part)
-        scratch = (s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz)
-        for g in range(chunk * CHUNK, min(n, chunk * CHUNK + CHUNK)):
-            for i in range(3):
-                for j in range(3):
-                    g_cov[i, j] = 0.0
-            seen = False
-            for c in range(c_n):
-                if radii[c, g] > 0 and _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
-                    seen = True
-                    for i in range(3):
-                        for j in range(3):
-                            Rw[i, j] = Rws[c, i, j]
-                    _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width,
-                                     height, colors, upstream, outs, Rw, scratch, want_pose)
-            if seen:
-                _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, s0, s1, gR)
-    pose = pose_part.sum(axis=1)                           # [C, 15], fixed summation order
+        scratch = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+                   np.empty((3, 3)), np.empty((3, 3)), np.empty((2, 3)), np.empty((2, 3)), np.empty(16), np.empty(16),
+                   np.empty(16), np.empty(16))
+        _project_bwd_chunk(chunk * CHUNK, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height,
+                           radii, colors, Rws, (g_means2d, g_conics, g_depths, g_colors), want_pose,
+                           (g_means, g_coeffs, np.empty((3, 3)), pose_part), g_quats, g_scales, np.empty((3, 3)),
+                           scratch)
+    pose = np.zeros((c_n, 15))                             # [C, 15], summed in a fixed order
+    for c in range(c_n):
+        for g in range(pose_part.shape[1]):
+            for k in range(15):
+                pose[c, k] += pose_part[c, g, k]
     g_viewmats = np.zeros((c_n, 4, 4), dt)
     g_campos = np.zeros((c_n, 3), dt)
     for c in range(c_n):
