@@ -204,12 +204,11 @@ def process_section(name: str, data: dict) -> Section:
         rows.append([r["views"], r["method"], num(r["seconds"], 1), r["registered"], num(r["reprojection_error_px"]),
                      f"{r['rotation_median_deg']:.2f} / {r['rotation_max_deg']:.2f}",
                      f"{r['centre_median_pct']:.2f} / {r['centre_max_pct']:.2f}",
-                     f"{check['rotation_median_deg']:.2f}° (flags {check['drift_flagged_elevations']})" if check else ""])
+                     f"{check['ring_rotation_max_deg']:.2f}° / {check['ring_centre_max_pct']:.2f} % "
+                     f"(drift flagged: {check['drift_flagged_elevations']})" if check else ""])
     lines += table(["views", "method", "s", "registered", "reprojection px", "rotation median / max °",
-                    "centre median / max %", "cross-check"], rows)
-    series = [Series("rig, its cross-check's rotation", [(r["seconds"], r["cross_check"]["rotation_median_deg"])
-                                                         for r in posing["rows"] if r.get("cross_check")], True),
-              Series("free SfM", [(r["seconds"], r["rotation_median_deg"])
+                    "centre median / max %", "cross-check: largest ring refit"], rows)
+    series = [Series("free SfM", [(r["seconds"], r["rotation_median_deg"])
                                   for r in posing["rows"] if r["method"] == "sfm"], True)]
     svg = scatter_svg(f"{name}: pose error against time (40, 120, 240 views)", "seconds to pose",
                       "median rotation error, degrees", series)

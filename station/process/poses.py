@@ -1,10 +1,11 @@
-"""Posing a scan: rig poses held fixed + triangulation, a prior-guided mapping cross-check, or pure SfM.
+"""Posing a scan: rig poses held fixed + triangulation and a drift check against the matches, or pure SfM.
 
 With a rig model the poses are known; SfM only adds a metric point cloud (triangulated with
-the cameras fixed) and a check that the scan matches the rig (a free mapping run, aligned to
-the rig, must agree). Without one (scans from elsewhere) incremental SfM poses the views and
-the ring of cameras fixes up, origin and, when scan.json has a rig, scale. Too few points (a
-textureless stone) falls back to a visual hull carved from the masks, with a flag.
+the cameras fixed) and a check that the scan matches the rig (each elevation ring, refitted to
+the feature matches, must stay put: `drift`). Without one (scans from elsewhere) incremental
+SfM poses the views and the ring of cameras fixes up, origin and, when scan.json has a rig,
+scale. Too few points (a textureless stone) falls back to a visual hull carved from the masks,
+with a flag.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from __future__ import annotations
 import shutil
 import tempfile
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -20,16 +20,16 @@ import cv2
 import numpy as np
 import pycolmap
 from PIL import Image
-from scipy.spatial.transform import Rotation
 
 from station.errors import BadInputError, ScanFolderError, StationError
 from station.formats.transforms import PinholeCamera
 from station.process import sfm
 from station.process.colmap_export import colmap_model, write_colmap_model
+from station.process.drift import DriftLimits, check_rig
 from station.process.images_io import read_exr, read_png16, write_exr_half, write_png16
 from station.process.lens import Lens, Undistortion, displacement_px, lens_from_colmap, undistortion
 from station.process.photometry import ring_gains
-from station.process.rig_model import PosedView, RigModel, apply_similarity, calibrate_rig, rotation_angle_deg, umeyama
+from station.process.rig_model import PosedView, RigModel, calibrate_rig
 from station.process.transforms import PosedFrame, Transforms, read_transforms, write_transforms
 from station.process.visual_hull import carve, ring_frame
 from station.rig_geometry import RigGeometry
@@ -47,9 +47,7 @@ class PoseSettings:
     sfm: sfm.SfmSettings = field(default_factory=sfm.SfmSettings)
     min_points: int = 200  # fewer triangulated points than this: carve a visual hull instead
     cross_check: bool = True
-    drift_rotation_deg: float = 0.5  # a ring's shared turn against the rig, in its cameras' frame
-    drift_centre_fraction: float = 0.01  # a ring's shared shift against the rig, of the orbit radius
-    min_cross_check_fraction: float = 0.7  # of the views the cross-check mapping must register to judge drift
+    drift: DriftLimits = field(default_factory=DriftLimits)
     hull_resolution: int = 96
     # Foreign scans have no rig to lean on and often sparse views: pay for affine SIFT there, where it
     # lowers the worst camera error.
@@ -150,10 +148,6 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
         flags.append("rig model given but the scan has no manifest angles: pure SfM used")
 
     work = Path(tempfile.mkdtemp(prefix="station-poses-"))
-    # The cross-check's mapping (C++, the GIL released) runs beside the exposure normalisation, undistortion
-    # and outputs, which do not touch the database it reads.
-    background = ThreadPoolExecutor(max_workers=1)
-    cross_check: Future | None = None
     try:
         database = work / "database.db"
         mask_dir = None
@@ -175,9 +169,10 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
             poses = rig_poses
             report = PoseReport("rig", len(refs), planned, sorted(poses), [], 0, "sfm", 0.0, 0.0, flags=flags)
             if settings.cross_check:
-                elevation_of = {r.name: r.elevation_deg for r in refs}
-                cross_check = background.submit(_cross_check, database, work, rig_poses, elevation_of, rig, settings)
-                cross_check_flags_at = len(flags)
+                report.cross_check = check_rig(sfm.verified_matches(database), rig_poses,
+                                               {r.name: r.elevation_deg for r in refs}, rig.orbit_radius(),
+                                               settings.drift)
+                flags.extend(report.cross_check.pop("flags"))
         else:
             scan_rig = _scan_rig(scan)
             camera = None
@@ -187,7 +182,7 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
                 camera = (prior.refinable() if calibrate else prior).to_colmap(keep_model=True)
             fallback = replace(settings.sfm, affine_sift=settings.fallback_affine_sift, refine_principal_point=True)
             sfm.extract_and_match(database, scan.images_dir, names, mask_dir, camera, fallback)
-            rec = sfm.map_incremental(database, scan.images_dir, work / "mapped", fallback, False, camera is not None)
+            rec = sfm.map_incremental(database, scan.images_dir, work / "mapped", fallback, camera is not None)
             if rec is None or rec.num_reg_images() < 3:
                 raise PosingError(f"{scan.root}: SfM registered {0 if rec is None else rec.num_reg_images()} views")
             if calibrate and rec.num_points3D():
@@ -225,65 +220,11 @@ def pose_scan(scan: ScanFolder, settings: PoseSettings, rig: RigModel | None) ->
                 flags.append(f"only {rec.num_points3D()} SfM points and no masks to carve a hull: sparse start")
         report.points = len(xyz)
         _write_outputs(scan, rec if report.init_cloud == "sfm" else None, lens, refs, poses, intr, xyz, rgb)
-        if cross_check is not None:
-            report.cross_check = cross_check.result()
-            flags[cross_check_flags_at:cross_check_flags_at] = report.cross_check.pop("flags")
     finally:
-        background.shutdown(wait=True, cancel_futures=True)  # before `work`, which the mapping writes into, goes
         shutil.rmtree(work, ignore_errors=True)
     report.seconds = time.monotonic() - started
     atomic_write_json(scan.poses_dir / "report.json", report.to_dict())
     return report
-
-
-def _cross_check(database: Path, work: Path, rig_poses: dict[str, np.ndarray], elevation_of: dict[str, float],
-                 rig: RigModel, settings: PoseSettings) -> dict:
-    """Free mapping pulled towards the rig centres; the scan drifted if its poses disagree with the rig.
-    It reads no image (poses only), so it may run while the images are normalised and undistorted."""
-    sfm.write_position_priors(database, {n: p[:3, 3] for n, p in rig_poses.items()})
-    no_images = work / "cross_check_images"  # empty: the mapping is given no image to read
-    no_images.mkdir(exist_ok=True)
-    rec = sfm.map_incremental(database, no_images, work / "cross_check", settings.sfm, True, True, colours=False)
-    mapped = sfm.registered_poses(rec) if rec is not None else {}
-    out: dict = {"registered": len(mapped), "flags": []}
-    missing = sorted(set(rig_poses) - set(mapped))
-    if missing:
-        out["flags"].append(f"cross-check mapping registered {len(mapped)} of {len(rig_poses)} views; "
-                            f"not: {', '.join(missing)}")
-    if len(mapped) < max(3, settings.min_cross_check_fraction * len(rig_poses)):
-        # a mapping that lost this many views is itself in doubt: no verdict on drift from it
-        out["flags"].append(f"cross-check mapping inconclusive ({len(mapped)} of {len(rig_poses)} views): "
-                            "poses rest on the rig model alone")
-        return out
-    names = sorted(mapped)
-    s, r, t = umeyama(np.array([mapped[n][:3, 3] for n in names]), np.array([rig_poses[n][:3, 3] for n in names]))
-    aligned = {n: apply_similarity(mapped[n], s, r, t) for n in names}
-    radius = rig.orbit_radius()
-    rot = np.array([rotation_angle_deg(aligned[n][:3, :3], rig_poses[n][:3, :3]) for n in names])
-    ctr = np.array([np.linalg.norm(aligned[n][:3, 3] - rig_poses[n][:3, 3]) / radius for n in names])
-    # A slipped arm or a wobbling plate moves a whole elevation ring the same way as seen from its
-    # camera; mapping noise scatters every view its own way. So each ring is judged by the median
-    # of its views' disagreements in the camera frame, which keeps a shared offset and cancels
-    # scattered ones (a per-view median flagged rings that matched the rig).
-    drifted, rings = [], {}
-    for e in sorted({elevation_of[n] for n in names}):
-        ring = [n for n in names if elevation_of[n] == e]
-        turn = np.median([Rotation.from_matrix(rig_poses[n][:3, :3].T @ aligned[n][:3, :3]).as_rotvec()
-                          for n in ring], axis=0)
-        shift = np.median([rig_poses[n][:3, :3].T @ (aligned[n][:3, 3] - rig_poses[n][:3, 3]) for n in ring], axis=0)
-        rings[e] = {"rotation_deg": float(np.degrees(np.linalg.norm(turn))),
-                    "centre_fraction": float(np.linalg.norm(shift) / radius)}
-        if rings[e]["rotation_deg"] > settings.drift_rotation_deg or rings[e]["centre_fraction"] > settings.drift_centre_fraction:
-            drifted.append(e)
-    out.update(rotation_median_deg=float(np.median(rot)), rotation_max_deg=float(rot.max()),
-               centre_median_fraction=float(np.median(ctr)), centre_max_fraction=float(ctr.max()),
-               ring_offsets={str(e): v for e, v in rings.items()}, drifted_elevations=drifted)
-    if drifted:
-        offsets = ", ".join(f"{e}: {rings[e]['rotation_deg']:.2f} deg, {100 * rings[e]['centre_fraction']:.2f} %"
-                            for e in drifted)
-        out["flags"].append(f"elevations {drifted} disagree with the rig model (drift; ring turn and shift of the "
-                            f"orbit radius: {offsets}): recalibrate the rig")
-    return out
 
 
 def _ring_errors(rec: pycolmap.Reconstruction, refs: list[FrameRef]) -> dict[str, float]:

@@ -165,20 +165,43 @@ def triangulate_fixed(
     return pycolmap.triangulate_points(rec, database, image_dir, out_dir, clear_points=True, options=options)
 
 
-def write_position_priors(database: Path, centre_by_name: dict[str, np.ndarray]) -> None:
-    """Store each camera centre as a pose prior so the mapper can be pulled towards the rig."""
+@dataclass(frozen=True)
+class VerifiedMatches:
+    """Every geometrically verified feature match of a database, as undistorted normalised camera coordinates."""
+
+    names: list[str]  # image names; `pairs` index into it
+    pairs: np.ndarray  # [P, 2] int: the two images of each verified pair
+    pair_of: np.ndarray  # [M] int: each match's pair
+    points: np.ndarray  # [M, 2, 2]: (x, y) / z in the pair's first and second camera, lens distortion removed
+    focal_px: float  # the shared camera's focal length: a normalised distance times this is pixels
+
+
+def verified_matches(database: Path) -> VerifiedMatches:
+    """The inlier matches of every verified image pair (the ones SfM would build tracks from)."""
     db = pycolmap.Database.open(database)
     try:
-        images = {image.name: image for image in db.read_all_images()}
-        for name, centre in centre_by_name.items():
-            prior = pycolmap.PosePrior()
-            prior.corr_data_id = images[name].data_id
-            prior.position = np.asarray(centre, dtype=np.float64).reshape(3, 1)
-            prior.position_covariance = np.eye(3) * 1e-4
-            prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
-            db.write_pose_prior(prior)
+        images = {image.image_id: image for image in db.read_all_images()}
+        cameras = {camera.camera_id: camera for camera in db.read_all_cameras()}
+        keypoints = {image_id: db.read_keypoints(image_id)[:, :2].astype(np.float64) for image_id in images}
+        normalised = {image_id: cameras[image.camera_id].cam_from_img(keypoints[image_id])
+                      for image_id, image in images.items()}
+        pair_ids, geometries = db.read_two_view_geometries()
     finally:
         db.close()
+    names = sorted(image.name for image in images.values())
+    index = {name: k for k, name in enumerate(names)}
+    pairs, pair_of, points = [], [np.zeros(0, np.int64)], [np.zeros((0, 2, 2))]
+    for pair_id, geometry in zip(pair_ids, geometries):
+        inliers = geometry.inlier_matches
+        if len(inliers) == 0:
+            continue
+        first, second = pycolmap.pair_id_to_image_pair(pair_id)
+        pair_of.append(np.full(len(inliers), len(pairs)))
+        pairs.append((index[images[first].name], index[images[second].name]))
+        points.append(np.stack([normalised[first][inliers[:, 0]], normalised[second][inliers[:, 1]]], axis=1))
+    focal = float(np.mean([camera.mean_focal_length() for camera in cameras.values()])) if cameras else 1.0
+    return VerifiedMatches(names, np.array(pairs, np.int64).reshape(-1, 2), np.concatenate(pair_of),
+                           np.concatenate(points), focal)
 
 
 @colmap_log_level()
@@ -187,18 +210,13 @@ def map_incremental(
     image_dir: Path,
     out_dir: Path,
     settings: SfmSettings,
-    use_priors: bool,
     fix_intrinsics: bool,
-    colours: bool = True,
 ) -> pycolmap.Reconstruction | None:
-    """Free incremental mapping (bounded in time); returns the largest model, or None. Without `colours` it
-    never reads the images (a check that only compares poses, running while the images are rewritten)."""
+    """Free incremental mapping (bounded in time); returns the largest model, or None."""
     options = pycolmap.IncrementalPipelineOptions()
-    options.extract_colors = colours
     options.num_threads = settings.num_threads
     options.max_runtime_seconds = int(settings.max_runtime_s)
     options.random_seed = 0
-    options.use_prior_position = use_priors
     options.min_num_matches = settings.min_num_matches
     options.mapper.abs_pose_min_num_inliers = settings.abs_pose_min_num_inliers
     if fix_intrinsics:
