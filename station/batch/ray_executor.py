@@ -109,6 +109,7 @@ class _Driver:
         self.probe = ray.remote(max_retries=0, num_cpus=0)(scan_fingerprint)
         self.lock = threading.Lock()
         self.busy: dict[str, int] = {}
+        self.lost_on: set[str] = set()  # labels of nodes some stage was lost on, until a stage ends well there
         self.seen: set[tuple[str, str]] = set()  # (node id, scan) pairs whose probe matched
 
     def nodes(self) -> list[Node]:
@@ -132,11 +133,15 @@ class _Driver:
         return None
 
     def place(self, call: StageCall, avoid: frozenset[str]) -> tuple[Node | None, list[str]]:
-        """The node for this stage (reserved), and the nodes refused for not seeing the scan."""
+        """The node for this stage (reserved), and the nodes refused for not seeing the scan.
+
+        Every stage puts the nodes any stage was lost on last: Ray reports a killed node alive for
+        seconds after its stages fail, and a stage pinned to it then is lost as well."""
         expected, refused, tried = scan_fingerprint(call.scan), [], set()
         while True:
             with self.lock:  # choose and reserve at once: slots placing together spread over the nodes
-                order = [n for n in choose_nodes(self.nodes(), call.stage, self.busy, avoid) if n.id not in tried]
+                order = [n for n in choose_nodes(self.nodes(), call.stage, self.busy, avoid | self.lost_on)
+                         if n.id not in tried]
                 if not order:
                     return None, refused
                 node = order[0]
@@ -151,6 +156,13 @@ class _Driver:
     def release(self, node: Node) -> None:
         with self.lock:
             self.busy[node.id] -= 1
+
+    def note(self, node: Node, outcome: Outcome) -> None:
+        with self.lock:
+            if outcome.kind == "lost":
+                self.lost_on.add(node.label)
+            elif outcome.ok:
+                self.lost_on.discard(node.label)
 
     def submit(self, call: StageCall, node: Node) -> Any:
         threads = int(max(1, min(call.threads, node.cpus)))
@@ -188,7 +200,9 @@ class _Driver:
                 while True:
                     ready, _ = self.ray.wait([ref], timeout=POLL_SECONDS)
                     if ready:
-                        conn.send(("outcome", self.result(call, ref, node)))
+                        outcome = self.result(call, ref, node)
+                        self.note(node, outcome)
+                        conn.send(("outcome", outcome))
                         return
                     if conn.poll():  # "cancel", or the runner's end closed
                         self.ray.cancel(ref, force=True)
