@@ -171,7 +171,7 @@ def _render(means, quats, scales, opacities, colors, viewmats, Ks, width, height
         if sh_degree is None:
             rgb = colors                                                         # [N, 3]
         elif compiled:
-            rgb = sh_rgb[c]                                                      # [N, 3]
+            rgb = _camera(sh_rgb, c)                                             # [N, 3]
         else:
             dirs = means - ref.camera_centres(viewmats[c:c + 1])                  # [N, 3]
             rgb = ref.eval_sh(sh_degree, dirs, colors[:, : (sh_degree + 1) ** 2])
@@ -180,15 +180,23 @@ def _render(means, quats, scales, opacities, colors, viewmats, Ks, width, height
         bg = backgrounds[c] if backgrounds is not None else means.new_zeros(3)             # [3]
         bg = torch.cat([bg, bg.new_zeros(feats.shape[1] - 3)])                              # [D]
         if compiled:
-            img, alpha = _Rasterize.apply(means2d[c], conics[c], feats, opacities, radii[c], depths[c], bg,
-                                          width, height)
+            img, alpha = _Rasterize.apply(_camera(means2d, c), _camera(conics, c), feats, opacities, radii[c],
+                                          _camera(depths, c), bg, width, height)
         else:
             img, alpha = ref.rasterize(means2d[c], conics[c], feats, opacities, depths[c], radii[c], width,
                                        height, bg)
         renders.append(img)
         alphas.append(alpha)
     meta = {"means2d": means2d, "radii": radii, "depths": depths}
+    if len(renders) == 1:  # views, as in _camera
+        return renders[0][None], alphas[0][None], meta
     return torch.stack(renders), torch.stack(alphas), meta
+
+
+def _camera(per_camera: Tensor, c: int) -> Tensor:
+    """Camera c's slice of a [C, ...] tensor; a view when C is 1, where indexing would zero-fill a
+    [C, ...] gradient and copy into it on every backward."""
+    return per_camera.squeeze(0) if per_camera.shape[0] == 1 else per_camera[c]
 
 
 class _Project(torch.autograd.Function):

@@ -209,10 +209,12 @@ class Trainer:
         )  # [1, H, W, 3 (+1: the noise's weight)], [1, H, W, 1]
         if not frozen:
             self.strategy.step_pre_backward(meta)
-        alpha = alphas[0, ..., 0]
-        surface_alpha = alpha - colors[0, ..., 3] if surface_fg else None
+        # views and a split, not indexing: each index's backward zero-fills an image-sized gradient and copies in
+        rgb, noise_weight = colors.squeeze(0).split(3, dim=-1) if surface_fg else (colors.squeeze(0), None)
+        alpha = alphas.squeeze(0).squeeze(-1)
+        surface_alpha = alpha - noise_weight.squeeze(-1) if surface_fg else None
         with self.device:  # losses.py and strategy.py create tensors without naming a device
-            loss, terms = total_loss(colors[0, ..., :3], alpha, view.target, view.mask, self.cfg.loss, surface_alpha,
+            loss, terms = total_loss(rgb, alpha, view.target, view.mask, self.cfg.loss, surface_alpha,
                                      self.loss_regions(index))
         check_finite(step, {"loss": loss})
         if loss.requires_grad:  # False only when the surface is frozen and no noise survived
