@@ -95,13 +95,14 @@ def ngs_section(name: str, data: dict) -> Section:
              "run's own training infill, where the run has one.", ""]
     lines += table(["run", "PSNR dB", "PSNR* dB", "SSIM", "SOS", "SOS at the plan", "Gaussians", "infill scored",
                     "steps (planned)", "train s"], rows)
-    lines.append(f"NGS's held-out PSNR below the best of 3DGS, 3DGS + alpha and NGS: "
-                 f"{data['ngs_psnr_gap_to_best_db']:.3f} dB.")
+    if data["ngs_psnr_gap_to_best_db"] is not None:  # None: no peer ran beside NGS
+        lines.append(f"NGS's held-out PSNR below the best of 3DGS, 3DGS + alpha and NGS: "
+                     f"{data['ngs_psnr_gap_to_best_db']:.3f} dB.")
     bar = data.get("ngs_first_at_bar")
     if bar:
         lines.append(f"NGS first at SOS ≥ {bar['sos_bar']} with PSNR within {bar['psnr_margin_db']} dB of 3DGS: step "
                      f"{bar['step']}, {bar['seconds']:.0f} s (PSNR {bar['psnr']:.2f} dB, SOS {bar['sos']:.3f}).")
-    elif "ngs_first_at_bar" in data:
+    elif data.get("ngs_psnr_minus_3dgs_db") is not None:  # 3DGS ran, and NGS never met the bar
         lines.append("NGS never reached SOS ≥ 0.85 with PSNR within 0.3 dB of 3DGS in this run.")
     coarse = data.get("coarse_start_against_full_resolution")
     if coarse:
