@@ -59,10 +59,14 @@ def pytest_configure(config: pytest.Config) -> None:
     started = time.monotonic()
     print("compiling the stages' numba kernels once for every test worker ...", file=sys.stderr, flush=True)
     with tempfile.TemporaryDirectory(prefix="station-warm-") as workdir:
-        done = subprocess.run([sys.executable, str(_ROOT / "tests" / "warm_kernels.py"), workdir],
-                              capture_output=True, text=True, timeout=900)
-    if done.returncode != 0:  # the tests that run these stages will show why; they compile as they go
-        print(f"kernel warm-up failed; each worker compiles on demand:\n{done.stderr[-2000:]}", file=sys.stderr)
+        try:
+            done = subprocess.run([sys.executable, str(_ROOT / "tests" / "warm_kernels.py"), workdir],
+                                  capture_output=True, text=True, timeout=900)
+            failure = done.stderr[-2000:] if done.returncode != 0 else None
+        except subprocess.TimeoutExpired:
+            failure = "it ran past 900 s"
+    if failure is not None:  # the tests that run these stages will show why; they compile as they go
+        print(f"kernel warm-up failed; each worker compiles on demand:\n{failure}", file=sys.stderr)
         return
     stamp.write_text(digest)
     print(f"... done in {time.monotonic() - started:.0f} s", file=sys.stderr, flush=True)

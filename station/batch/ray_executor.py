@@ -157,7 +157,7 @@ class _Driver:
         with self.lock:
             self.busy[node.id] -= 1
 
-    def note(self, node: Node, outcome: Outcome) -> None:
+    def record_outcome(self, node: Node, outcome: Outcome) -> None:
         with self.lock:
             if outcome.kind == "lost":
                 self.lost_on.add(node.label)
@@ -201,7 +201,7 @@ class _Driver:
                     ready, _ = self.ray.wait([ref], timeout=POLL_SECONDS)
                     if ready:
                         outcome = self.result(call, ref, node)
-                        self.note(node, outcome)
+                        self.record_outcome(node, outcome)
                         conn.send(("outcome", outcome))
                         return
                     if conn.poll():  # "cancel", or the runner's end closed
