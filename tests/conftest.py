@@ -48,7 +48,7 @@ def _sources_digest() -> str:
 def pytest_configure(config: pytest.Config) -> None:
     """In the controller, before any worker starts: compile every stage's kernels once into the warm cache,
     which each worker copies as its own. Without it each worker compiled them again, inside whichever test
-    came first (on a fresh clone, over a minute of that test's timeout)."""
+    came first and against that test's timeout."""
     if _WORKER or os.environ["NUMBA_CACHE_DIR"] != str(_WARM_CACHE) or config.option.collectonly:
         return
     digest = _sources_digest()
