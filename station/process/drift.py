@@ -58,7 +58,10 @@ class RingFit:
 
 def epipolar_px(matches: VerifiedMatches, rotations: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """Signed Sampson distance of each match, in pixels, for world-to-camera `rotations` [V, 3, 3] and camera
-    `centres` [V, 3] of the views `matches.names`."""
+    `centres` [V, 3] of the views `matches.names`.
+
+    Not pycolmap's compute_squared_sampson_error: that takes one pair at a time and loses the sign, and
+    least_squares needs every pair's residuals, signed, at each of its evaluations."""
     first, second = matches.pairs[:, 0], matches.pairs[:, 1]
     relative = rotations[second] @ np.transpose(rotations[first], (0, 2, 1))  # first camera to second
     t = np.einsum("pij,pj->pi", rotations[second], centres[first] - centres[second])
