@@ -87,31 +87,9 @@ class ChartPlacement:
         rows, cols = np.divmod(np.arange(24), 6)
         return centre + ((cols - 2.5) * pitch)[:, None] * right + ((rows - 1.5) * pitch)[:, None] * down
 
-    def intersect(self, eye: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Distance (inf = miss) [N] and reflectance [N, 3] of rays from `eye` (lab frame) against the card."""
-        centre, normal, right, down = self.frame
-        pitch = self.patch_m + self.gap_m
-        margin = self.gap_m / pitch
-        t = np.full(len(dirs), np.inf)
-        rgb = np.zeros((len(dirs), 3))
-        # only rays inside the cone around the card can hit it: one cheap test for all rays
-        to_card = centre - eye
-        distance = float(np.linalg.norm(to_card))
-        half_diagonal = np.hypot(3.0, 2.0) * pitch + self.gap_m
-        cone = np.cos(np.arctan2(half_diagonal, np.sqrt(max(distance**2 - half_diagonal**2, _EPS))))
-        ray = np.flatnonzero(dirs @ (to_card / distance).astype(dirs.dtype) > cone - 1e-6)
-        facing = dirs[ray] @ normal
-        ray, facing = ray[facing < -_EPS], facing[facing < -_EPS]
-        dist = ((centre - eye) @ normal) / facing
-        local = eye - centre + dirs[ray] * dist[:, None]  # [M, 3] hit point relative to the card centre
-        u, v = local @ right / pitch + 3.0, local @ down / pitch + 2.0  # patch units from the card corner
-        on_card = (u >= -margin) & (u <= 6.0 + margin) & (v >= -margin) & (v <= 4.0 + margin)
-        ray, u, v = ray[on_card], u[on_card], v[on_card]
-        t[ray] = dist[on_card]
-        col, row = np.clip(np.floor(u), 0, 5).astype(int), np.clip(np.floor(v), 0, 3).astype(int)
-        in_patch = (u - np.floor(u) > margin) & (v - np.floor(v) > margin) & (u > 0) & (v > 0) & (u < 6) & (v < 4)
-        rgb[ray] = np.where(in_patch[:, None], CHART_LINEAR_SRGB[row * 6 + col], CHART_SURROUND)
-        return t, rgb
+    def in_turntable_frame(self, to_lab: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Centre, normal, right and down of the card in the turntable frame (`to_lab`: turntable -> lab)."""
+        return tuple(to_lab.T @ vector for vector in self.frame)  # type: ignore[return-value]
 
 
 @dataclass
@@ -218,72 +196,34 @@ def _irradiance(world: World, normals: np.ndarray, key: np.ndarray) -> np.ndarra
     return world.light_level * (dome + world.key_strength * np.clip(normals @ key, 0.0, None))
 
 
-def _shade_stone(world: World, eye: np.ndarray, dirs: np.ndarray, tri: np.ndarray, t: np.ndarray, key) -> np.ndarray:
-    """[N, 3] radiance of stone hits: albedo x irradiance, plus a view-dependent sheen."""
-    mesh = world.stone.mesh
-    points = eye + dirs * t[:, None]  # [N, 3]
-    corners = mesh.vertices[mesh.faces[tri]]  # [N, 3, 3]
-    bary = _barycentric(corners, points)  # [N, 3]
-    normals = np.einsum("nk,nkd->nd", bary, world.vertex_normals[mesh.faces[tri]])
-    normals /= np.sqrt(_dot(normals, normals))[:, None] + _EPS
-    radiance = world.stone.albedo(points) * _irradiance(world, normals, key)[:, None]
-    if world.stone.sheen > 0.0:
-        half = key - dirs
-        half /= np.sqrt(_dot(half, half))[:, None] + _EPS
-        reflect_z = dirs[:, 2] - 2.0 * _dot(dirs, normals) * normals[:, 2]
-        highlight = 1.5 * np.clip(_dot(normals, half), 0.0, None) ** 40
-        dome = 0.15 * (0.5 + 0.5 * reflect_z)  # the softbox's own mirror image
-        radiance = radiance + (world.stone.sheen * world.light_level * (highlight + dome))[:, None]
-    return radiance
-
-
-def _barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """[N, 3] barycentric coordinates of points on their triangles [N, 3, 3]."""
-    e1, e2, ep = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], points - corners[:, 0]
-    d11, d12, d22 = _dot(e1, e1), _dot(e1, e2), _dot(e2, e2)
-    dp1, dp2 = _dot(ep, e1), _dot(ep, e2)
-    den = d11 * d22 - d12 * d12 + _EPS * _EPS
-    v = (d22 * dp1 - d12 * dp2) / den
-    w = (d11 * dp2 - d12 * dp1) / den
-    return np.stack([1.0 - v - w, v, w], axis=1)
-
-
-def _box_down(samples: np.ndarray, h: int, w: int, s: int) -> np.ndarray:
-    """Mean over each pixel's s x s subsamples: [H*s * W*s, ...] -> [H, W, ...] float32."""
-    flat = np.ascontiguousarray(samples.reshape(len(samples), -1), dtype=np.float32)
-    return _box_mean(flat, h, w, s).reshape(h, w, *samples.shape[1:])
-
-
 @njit(parallel=True, cache=True)
-def _box_mean(samples, h, w, s):
-    out = np.zeros((h * w, samples.shape[1]), dtype=np.float32)
-    for row in prange(h):
-        for col in range(w):
-            for c in range(samples.shape[1]):
-                total = 0.0
-                for i in range(s):
-                    base = ((row * s + i) * w + col) * s
-                    for j in range(s):
-                        total += samples[base + j, c]
-                out[row * w + col, c] = total / (s * s)
-    return out
+def _environment(eye, camera_frame_rays, rotation, to_lab, backdrop_radius, backdrop_level, plate_radius, plate_level,
+                 occlusion, chart_frame, chart_pitch, chart_margin, chart_radiance, chart_surround, stone_centre,
+                 stone_radius):
+    """Each ray's world direction [R, 3], and the radiance [R, 3] and distance [R] of its first hit on the
+    backdrop sphere, the plate disk or the chart; `near` [R]: the ray passes the stone's bounding sphere.
 
-
-@njit(parallel=True, cache=True)
-def _backdrop_and_plate(eye, dirs, to_lab, backdrop_radius, backdrop_level, plate_radius, plate_level, occlusion):
-    """Radiance [R, 3] and distance [R] of each ray's first hit on the backdrop sphere or the plate disk.
-
-    The backdrop is a sphere about the origin, lit from within, with a gentle gradient fixed in the lab; the
-    plate is a grey disk at z=0 turning with the stone, darkened near the stone by its contact occlusion
-    (`occlusion` [G, G] over the plate, bilinear, edges held; [1, 1] of ones when the stone is away).
+    One pass over the rays for everything analytic. The backdrop is a sphere about the origin, lit from within,
+    with a gentle gradient fixed in the lab; the plate is a grey disk at z=0 turning with the stone, darkened near
+    the stone by its contact occlusion (`occlusion` [G, G] over the plate, bilinear, edges held; [1, 1] of ones
+    when the stone is away). The chart (`chart_frame` [4, 3]: centre, normal, right, down; no rows: no chart) is
+    a 6x4 grid of patches of `chart_radiance` [24, 3] in a frame of `chart_surround`.
     """
-    n = dirs.shape[0]
+    n = camera_frame_rays.shape[0]
+    dirs = np.empty((n, 3), dtype=np.float32)
     radiance = np.empty((n, 3), dtype=np.float32)
     best = np.empty(n, dtype=np.float32)
+    near = np.empty(n, dtype=np.bool_)
     ex, ey, ez = eye[0], eye[1], eye[2]
     c = ex * ex + ey * ey + ez * ez - backdrop_radius * backdrop_radius
     g = occlusion.shape[0]
+    to_stone = stone_centre - eye
+    to_stone_squared = to_stone[0] * to_stone[0] + to_stone[1] * to_stone[1] + to_stone[2] * to_stone[2]
+    has_chart = chart_frame.shape[0] == 4
     for r in prange(n):
+        for i in range(3):
+            dirs[r, i] = (rotation[i, 0] * camera_frame_rays[r, 0] + rotation[i, 1] * camera_frame_rays[r, 1]
+                          + rotation[i, 2] * camera_frame_rays[r, 2])
         dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
         b = dx * ex + dy * ey + dz * ez
         t = -b + math.sqrt(max(b * b - c, 0.0))
@@ -308,28 +248,147 @@ def _backdrop_and_plate(eye, dirs, to_lab, backdrop_radius, backdrop_level, plat
                 light = plate_level * (0.25 + 0.75 * openness)
                 radiance[r, 0], radiance[r, 1], radiance[r, 2] = light, light, light
                 best[r] = t_plate
-    return radiance, best
+        if has_chart:
+            facing = dx * chart_frame[1, 0] + dy * chart_frame[1, 1] + dz * chart_frame[1, 2]
+            if facing < -_EPS:
+                ox, oy, oz = ex - chart_frame[0, 0], ey - chart_frame[0, 1], ez - chart_frame[0, 2]
+                t_chart = -(ox * chart_frame[1, 0] + oy * chart_frame[1, 1] + oz * chart_frame[1, 2]) / facing
+                if 0.0 < t_chart < best[r]:
+                    lx, ly, lz = ox + dx * t_chart, oy + dy * t_chart, oz + dz * t_chart
+                    u = (lx * chart_frame[2, 0] + ly * chart_frame[2, 1] + lz * chart_frame[2, 2]) / chart_pitch + 3.0
+                    v = (lx * chart_frame[3, 0] + ly * chart_frame[3, 1] + lz * chart_frame[3, 2]) / chart_pitch + 2.0
+                    if -chart_margin <= u <= 6.0 + chart_margin and -chart_margin <= v <= 4.0 + chart_margin:
+                        col, row = min(max(math.floor(u), 0), 5), min(max(math.floor(v), 0), 3)
+                        in_patch = (u - math.floor(u) > chart_margin and v - math.floor(v) > chart_margin
+                                    and 0.0 < u < 6.0 and 0.0 < v < 4.0)
+                        for k in range(3):
+                            radiance[r, k] = chart_radiance[row * 6 + col, k] if in_patch else chart_surround
+                        best[r] = t_chart
+        along = dx * to_stone[0] + dy * to_stone[1] + dz * to_stone[2]
+        near[r] = to_stone_squared - along * along <= stone_radius * stone_radius
+    return dirs, radiance, best, near
 
 
-def hit_stone(world: World, eye: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Triangle id (-1 = miss) [N] and distance (inf = miss) [N] of rays from `eye`.
+@njit(inline="always")
+def _row(array, i):
+    return array[i, 0], array[i, 1], array[i, 2]
 
-    Only rays that pass the stone's bounding sphere go to embree (trimesh's RayMeshIntersector).
-    """
-    centre, radius = world.stone_bound
-    to_c = centre - eye
-    along = dirs @ to_c
-    near = to_c @ to_c - along**2 <= radius**2
-    tri = np.full(len(dirs), -1, dtype=np.int64)
-    t = np.full(len(dirs), np.inf)
-    if near.any():
-        tri[near] = world.stone.mesh.ray.intersects_first(np.broadcast_to(eye, (int(near.sum()), 3)), dirs[near])
-    hit = tri >= 0
-    if hit.any():
-        corners = world.stone.mesh.vertices[world.stone.mesh.faces[tri[hit]]]
-        normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        t[hit] = _dot(corners[:, 0] - eye, normal) / _dot(dirs[hit], normal)
-    return tri, t
+
+@njit(inline="always")
+def _sub(a, b):
+    return a[0] - b[0], a[1] - b[1], a[2] - b[2]
+
+
+@njit(inline="always")
+def _dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(parallel=True, cache=True)
+def _triangle_distance(eye, dirs, rays, triangles, vertices, faces):
+    """[K] distance along each of `rays` to the plane of its triangle (inf where `triangles` is -1: a miss)."""
+    t = np.full(rays.shape[0], np.inf)
+    origin = (np.float64(eye[0]), np.float64(eye[1]), np.float64(eye[2]))
+    for k in prange(rays.shape[0]):
+        if triangles[k] < 0:
+            continue
+        c0 = _row(vertices, faces[triangles[k], 0])
+        e1 = _sub(_row(vertices, faces[triangles[k], 1]), c0)
+        e2 = _sub(_row(vertices, faces[triangles[k], 2]), c0)
+        normal = (e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0])
+        t[k] = _dot3(_sub(c0, origin), normal) / _dot3(_row(dirs, rays[k]), normal)
+    return t
+
+
+def hit_stone(world: World, eye: np.ndarray, dirs: np.ndarray, near: np.ndarray,
+              nearer: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rays [K] whose first hit is the stone, its triangle [K] and distance [K]: rays within its bounding
+    sphere (`near`) go to embree (trimesh's RayMeshIntersector), and a hit counts where it is before `nearer`."""
+    mesh = world.stone.mesh
+    candidates = np.flatnonzero(near)
+    triangles = mesh.ray.intersects_first(np.broadcast_to(eye, (len(candidates), 3)), dirs[candidates])
+    t = _triangle_distance(eye, dirs, candidates, triangles, mesh.vertices, mesh.faces)
+    first = t < nearer[candidates]
+    return candidates[first], triangles[first], t[first]
+
+
+@njit(parallel=True, cache=True)
+def _stone_light(eye, dirs, rays, triangles, t, vertices, faces, vertex_normals, key, light_level, key_strength,
+                 sheen):
+    """Per stone hit: the point [K, 3], the irradiance [K] its albedo takes, and the sheen [K] added on top.
+
+    The shading normal is the vertex normals interpolated at the hit; the sheen is a key highlight plus the
+    softbox's own mirror image."""
+    count = rays.shape[0]
+    points = np.empty((count, 3))
+    irradiance = np.empty(count)
+    glow = np.zeros(count)
+    for k in prange(count):
+        d = _row(dirs, rays[k])
+        f0, f1, f2 = faces[triangles[k], 0], faces[triangles[k], 1], faces[triangles[k], 2]
+        p = (eye[0] + d[0] * t[k], eye[1] + d[1] * t[k], eye[2] + d[2] * t[k])
+        c0 = _row(vertices, f0)
+        e1, e2, ep = _sub(_row(vertices, f1), c0), _sub(_row(vertices, f2), c0), _sub(p, c0)
+        d11, d12, d22 = _dot3(e1, e1), _dot3(e1, e2), _dot3(e2, e2)
+        dp1, dp2 = _dot3(ep, e1), _dot3(ep, e2)
+        den = d11 * d22 - d12 * d12 + _EPS * _EPS
+        v = (d22 * dp1 - d12 * dp2) / den
+        w = (d11 * dp2 - d12 * dp1) / den
+        n0, n1, n2 = _row(vertex_normals, f0), _row(vertex_normals, f1), _row(vertex_normals, f2)
+        u = 1.0 - v - w
+        normal = (u * n0[0] + v * n1[0] + w * n2[0], u * n0[1] + v * n1[1] + w * n2[1],
+                  u * n0[2] + v * n1[2] + w * n2[2])
+        length = math.sqrt(_dot3(normal, normal)) + _EPS
+        normal = (normal[0] / length, normal[1] / length, normal[2] / length)
+        irradiance[k] = light_level * (0.62 + 0.23 * normal[2] + key_strength * max(_dot3(normal, key), 0.0))
+        points[k, 0], points[k, 1], points[k, 2] = p
+        if sheen > 0.0:
+            half = _sub(key, d)
+            length = math.sqrt(_dot3(half, half)) + _EPS
+            half = (half[0] / length, half[1] / length, half[2] / length)
+            reflect_z = d[2] - 2.0 * _dot3(d, normal) * normal[2]
+            highlight = 1.5 * max(_dot3(normal, half), 0.0) ** 40
+            glow[k] = sheen * light_level * (highlight + 0.15 * (0.5 + 0.5 * reflect_z))
+    return points, irradiance, glow
+
+
+@njit(parallel=True, cache=True)
+def _pixels(radiance, stone_rays, stone_depth, h, w, s):
+    """The supersampled rays averaged to pixels: radiance [H, W, 3], stone coverage [H, W], the stone's mean
+    depth where it covers [H, W] (0 elsewhere) and the stone alone on black [H, W, 3], in one pass."""
+    samples = radiance.shape[0]
+    covered = np.zeros(samples, dtype=np.bool_)
+    depth = np.zeros(samples, dtype=np.float32)
+    for k in range(stone_rays.shape[0]):
+        covered[stone_rays[k]] = True
+        depth[stone_rays[k]] = stone_depth[k]
+    image = np.empty((h, w, 3), dtype=np.float32)
+    stone = np.empty((h, w, 3), dtype=np.float32)
+    alpha = np.empty((h, w), dtype=np.float32)
+    depth_px = np.empty((h, w), dtype=np.float32)
+    n = s * s
+    for row in prange(h):
+        for col in range(w):
+            total = np.zeros(3)
+            on_stone = np.zeros(3)
+            hits, depth_sum = 0, 0.0
+            for i in range(s):
+                base = ((row * s + i) * w + col) * s
+                for j in range(s):
+                    k = base + j
+                    for c in range(3):
+                        total[c] += radiance[k, c]
+                    if covered[k]:
+                        hits += 1
+                        depth_sum += depth[k]
+                        for c in range(3):
+                            on_stone[c] += radiance[k, c]
+            for c in range(3):
+                image[row, col, c] = total[c] / n
+                stone[row, col, c] = on_stone[c] / n
+            alpha[row, col] = hits / n
+            depth_px[row, col] = depth_sum / hits if hits else 0.0
+    return image, alpha, depth_px, stone
 
 
 def render(
@@ -341,45 +400,44 @@ def render(
     present = world.stone_present if stone_present is None else stone_present
     rig, s = world.rig, supersample
     c2w = camera_to_turntable(elevation_deg, azimuth_deg, rig)
-    eye, dirs = camera_rays(rig, c2w, s, world.lens)  # [3], [R, 3]
+    eye = c2w[:3, 3].astype(np.float32)
     to_lab = rotation_z(azimuth_deg).astype(np.float32)  # turntable -> lab
     key = np.asarray(world.key_direction_lab, dtype=np.float32)
     key = to_lab.T @ (key / np.linalg.norm(key))  # the lab's key light in the turntable frame
 
     occlusion = world.contact_occlusion if present else np.ones((1, 1))
     plate_level = world.plate_albedo * float(_irradiance(world, np.array([[0.0, 0.0, 1.0]]), key)[0])
-    radiance, best = _backdrop_and_plate(eye, dirs, to_lab, world.backdrop_radius_m,
-                                         world.backdrop_level * world.light_level, world.plate_radius_m,
-                                         plate_level, occlusion)
-
+    chart_frame, chart_pitch, chart_margin, chart_light = np.zeros((0, 3)), 1.0, 0.0, 0.0
     if world.chart is not None:
-        t_chart, rgb = world.chart.intersect(to_lab @ eye, dirs @ to_lab.T)
-        front = np.flatnonzero(t_chart < best)
-        if len(front):
-            normal = (to_lab.T @ world.chart.normal_lab)[None, :]  # lab -> turntable
-            radiance[front] = rgb[front] * _irradiance(world, normal, key)[:, None]
-            best[front] = t_chart[front]
+        chart_frame = np.stack(world.chart.in_turntable_frame(to_lab))
+        chart_pitch = world.chart.patch_m + world.chart.gap_m
+        chart_margin = world.chart.gap_m / chart_pitch
+        chart_light = float(_irradiance(world, chart_frame[1][None, :], key)[0])
+    centre, radius = world.stone_bound
+    dirs, radiance, best, near = _environment(
+        eye, _camera_frame_rays(rig, world.lens, s), c2w[:3, :3].astype(np.float32), to_lab, world.backdrop_radius_m,
+        world.backdrop_level * world.light_level, world.plate_radius_m, plate_level, occlusion, chart_frame,
+        chart_pitch, chart_margin, CHART_LINEAR_SRGB * chart_light, CHART_SURROUND * chart_light, centre, radius)
 
-    covered = np.zeros(len(dirs), dtype=bool)
-    depth = np.zeros(len(dirs), dtype=np.float32)
+    stone_rays, stone_depth = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float32)
     if present:
-        tri, t_stone = hit_stone(world, eye, dirs)
-        covered = t_stone < best
-        hits = np.flatnonzero(covered)
-        if len(hits):
-            radiance[hits] = _shade_stone(world, eye, dirs[hits], tri[hits], t_stone[hits], key)
-            depth[hits] = t_stone[hits] * (dirs[hits] @ c2w[:3, 2])
+        stone_rays, triangles, t_stone = hit_stone(world, eye, dirs, near, best)
+        if len(stone_rays):
+            radiance[stone_rays] = _shade_stone(world, eye, dirs, stone_rays, triangles, t_stone, key)
+            stone_depth = (t_stone * (dirs[stone_rays] @ c2w[:3, 2])).astype(np.float32)
 
-    h, w = rig.height, rig.width
-    alpha = _box_down(covered.astype(np.float32), h, w, s)
-    depth_px = _box_down(depth, h, w, s) / np.maximum(alpha, 1.0 / (s * s))
-    return RenderOut(
-        radiance=_box_down(radiance, h, w, s).astype(np.float32),
-        mask=alpha >= 0.5,
-        depth=np.where(alpha > 0, depth_px, 0.0).astype(np.float32),
-        alpha=alpha.astype(np.float32),
-        stone=_box_down(radiance * covered[:, None], h, w, s).astype(np.float32),
-    )
+    image, alpha, depth, stone = _pixels(radiance, stone_rays, stone_depth, rig.height, rig.width, s)
+    return RenderOut(radiance=image, mask=alpha >= 0.5, depth=depth, alpha=alpha, stone=stone)
+
+
+def _shade_stone(world: World, eye: np.ndarray, dirs: np.ndarray, rays: np.ndarray, triangles: np.ndarray,
+                 t: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """[K, 3] radiance of the stone hits: albedo x irradiance, plus a view-dependent sheen."""
+    mesh = world.stone.mesh
+    points, irradiance, glow = _stone_light(
+        eye, dirs, rays, triangles, t, mesh.vertices, mesh.faces, world.vertex_normals, key, world.light_level,
+        world.key_strength, world.stone.sheen)
+    return world.stone.albedo(points) * irradiance[:, None] + glow[:, None]
 
 
 class CaptureSettingsLike(Protocol):
