@@ -49,8 +49,8 @@ def num(value: object, digits: int = 3) -> str:
 
 
 def kind_of(data: dict) -> str:
-    if data.get("benchmark") == "demo":
-        return "demo"
+    if data.get("benchmark") in ("demo", "plans"):
+        return data["benchmark"]
     methods = data.get("methods")
     if isinstance(methods, dict) and methods:
         first = next(iter(methods.values()))
@@ -109,6 +109,17 @@ def ngs_section(name: str, data: dict) -> Section:
         lines.append(f"Coarse start against full resolution throughout: seconds per step ×{coarse['seconds_per_step_ratio']}, "
                      f"PSNR {coarse['psnr_delta_db']:+.3f} dB, SOS {coarse['sos_delta']:+.4f}.")
     return lines + [""], {}
+
+
+def plans_section(name: str, data: dict) -> Section:
+    rows = [[run, f"{num(r['steps'])} ({num(r['planned_steps'])})", num(r["train_seconds"], 0),
+             num(data["against_peer"][run]["time_ratio"], 2), num(r["psnr"], 2), num(r["sos"]), sos_at_plan(r),
+             r["extensions"][-1]["reason"] if r["extensions"] else ""]
+            for run, r in data["methods"].items()]
+    lines = [f"Scan: {data['scan']}; {data['preset']} preset, extensions on; training seed {data['seed']}. "
+             f"Peer: {data['peer']}. PSNR and SOS on the held-out views, each run against its own infill.", ""]
+    return lines + table(["run", "steps (planned)", "train s", "time / peer", "PSNR dB", "SOS", "SOS at the plan",
+                          "why it stopped"], rows), {}
 
 
 def masks_section(name: str, data: dict) -> Section:
@@ -298,6 +309,7 @@ SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
     "cross_view": ("Masks cut again across rings", cross_view_section),
     "raster": ("Rasteriser speed", raster_section),
     "ngs": ("NGS against its baselines", ngs_section),
+    "plans": ("How many steps the plan needs", plans_section),
     "real": ("NGS on real photos", ngs_section),
     "mesh": ("Mesh surface", mesh_section),
     "fidelity": ("Training views against the truth", fidelity_section),

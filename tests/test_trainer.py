@@ -316,7 +316,7 @@ def test_training_goes_on_past_the_plan_while_held_out_sos_rises_and_stops_at_th
 
 
 def test_the_extension_decision_reads_the_last_two_evaluations():
-    cfg = ExtendConfig(max_extra_steps=1_000)
+    cfg = ExtendConfig(max_extra_steps=1_000, psnr_target_db=45.0)
     evals = [{"step": 2500, "psnr": 40.0, "sos": 0.90}, {"step": 3000, "psnr": 40.1, "sos": 0.93}]
     assert extension_decision(cfg, evals, 0, 500)["extend"]  # below target and rising
     assert not extension_decision(cfg, evals, 600, 500)["extend"]  # the next block would pass the cap
@@ -324,8 +324,15 @@ def test_the_extension_decision_reads_the_last_two_evaluations():
     assert not extension_decision(cfg, reached, 0, 500)["extend"]
     plateau = [evals[0], {**evals[1], "sos": 0.902}]
     assert not extension_decision(cfg, plateau, 0, 500)["extend"]
+    rising_then_flat = [{"step": 2000, "psnr": 40.0, "sos": 0.85}, evals[0], {**evals[1], "sos": 0.902}]
+    assert extension_decision(cfg, rising_then_flat, 0, 500)["extend"]  # one flat block after a rise: noise
+    flat_twice = [{"step": 2000, "psnr": 40.0, "sos": 0.897}, evals[0], {**evals[1], "sos": 0.902}]
+    assert not extension_decision(cfg, flat_twice, 0, 500)["extend"]
     learning = [evals[0], {**evals[1], "sos": 0.96, "psnr": 40.5}]
     assert extension_decision(cfg, learning, 0, 500)["extend"]  # opaque, but the photos still improve
+    invisible = [{**evals[0], "psnr": 48.0}, {**evals[1], "sos": 0.96, "psnr": 48.5}]
+    decision = extension_decision(cfg, invisible, 0, 500)  # a gain nobody would see in the asset
+    assert not decision["extend"] and "above 45" in decision["reason"]
     before_infill = [{"step": 500, "psnr": 30.0, "sos": None}, {"step": 1000, "psnr": 30.1, "sos": None}]
     assert not extension_decision(cfg, before_infill, 0, 500)["extend"]
     assert extension_decision(ExtendConfig(), evals, 0, 500)["reason"] == "extension off"

@@ -37,7 +37,7 @@ def fast_preset() -> TrainConfig:
     moves up once that stops paying (resolution.py).
     """
     return TrainConfig(
-        steps=3_000,
+        steps=2_500,
         sh_degree=1,
         downscale=1,
         checkpoint_every=250,

@@ -2,10 +2,10 @@
 
 The NGS phases are fractions of a planned step count, so the plan has to be fixed up front. What a
 scene needs shows only at the end: a small stone on a softbox is opaque after the fast preset's
-3,000 steps, a larger or shinier one is not yet. So after the plan, training goes on in blocks of
+2,500 steps, a larger or shinier one is not yet. So after the plan, training goes on in blocks of
 `eval_every` steps while SOS is below its target and still rising, or while held-out PSNR still
-rises clearly, up to a cap. Every decision, with the figures behind it, is kept in
-train_metrics.json.
+rises clearly and is below its own target, up to a cap. Every decision, with the figures behind it,
+is kept in train_metrics.json.
 """
 
 from __future__ import annotations
@@ -17,13 +17,16 @@ from dataclasses import dataclass
 class ExtendConfig:
     max_extra_steps: int = 0  # 0: train exactly the planned steps
     sos_target: float = 0.95  # no extension for SOS once the held-out SOS reaches this
-    min_sos_gain: float = 0.005  # per block: a smaller gain is a plateau
+    min_sos_gain: float = 0.005  # per block, averaged over `sos_window` blocks: a smaller gain is a plateau
+    # One block's SOS gain is noisy (DTU: +0.002 between +0.03 and +0.01), so a plateau must hold over two.
+    sos_window: int = 2
     # Per block. Held-out PSNR wanders between evaluations once it has converged, so only a clear rise counts.
     min_psnr_gain_db: float = 0.25
+    psnr_target_db: float = 40.0  # no extension for PSNR above this: further gains are not visible in the asset
 
 
 def extension_decision(cfg: ExtendConfig, evals: list[dict], extra_steps_so_far: int, block: int) -> dict:
-    """Whether to train one more block, judged on the last two held-out evaluations."""
+    """Whether to train one more block, judged on the last held-out evaluations."""
     last = evals[-1] if evals else {}
     decision = {"step": last.get("step"), "extend": False, "reason": ""}
     if cfg.max_extra_steps <= 0:
@@ -38,9 +41,12 @@ def extension_decision(cfg: ExtendConfig, evals: list[dict], extra_steps_so_far:
     decision["psnr_gain_db"] = round(psnr_gain, 4)
     if sos is not None and sos_before is not None:
         decision["sos_gain"] = round(sos - sos_before, 4)
-        if sos < cfg.sos_target and sos - sos_before >= cfg.min_sos_gain:
+        window = [e["sos"] for e in evals[-1 - cfg.sos_window:] if e.get("sos") is not None]
+        if sos < cfg.sos_target and (sos - window[0]) / (len(window) - 1) >= cfg.min_sos_gain:
             return {**decision, "extend": True, "reason": f"SOS {sos:.3f} below {cfg.sos_target} and still rising"}
-    if psnr_gain >= cfg.min_psnr_gain_db:
+    if psnr_gain >= cfg.min_psnr_gain_db and last["psnr"] < cfg.psnr_target_db:
         return {**decision, "extend": True, "reason": f"held-out PSNR still rising ({psnr_gain:+.2f} dB)"}
+    above = last["psnr"] >= cfg.psnr_target_db
+    psnr = f"PSNR {last['psnr']:.1f} dB above {cfg.psnr_target_db:g}" if above else "PSNR flat"
     return {**decision, "reason": "held-out PSNR and SOS stopped improving" if sos is None or sos < cfg.sos_target
-            else f"SOS {sos:.3f} reached {cfg.sos_target}, PSNR flat"}
+            else f"SOS {sos:.3f} reached {cfg.sos_target}, {psnr}"}
