@@ -76,10 +76,6 @@ class ChartPlacement:
         right /= np.linalg.norm(right)
         return centre, normal, right, np.cross(normal, right)
 
-    @property
-    def normal_lab(self) -> np.ndarray:
-        return self.frame[1]
-
     def patch_centres_lab(self) -> np.ndarray:
         """[24, 3] patch centres in the lab frame, in CHART_LINEAR_SRGB order."""
         centre, _, right, down = self.frame
@@ -185,7 +181,7 @@ def _camera_frame_rays(rig: RigGeometry, lens: SimLens, supersample: int) -> np.
 def camera_rays(rig: RigGeometry, c2w: np.ndarray, supersample: int,
                 lens: SimLens = SimLens.ideal()) -> tuple[np.ndarray, np.ndarray]:
     """The eye [3] and unit ray directions [H*s * W*s, 3] (float32) in world frame, row-major over the
-    supersampled grid."""
+    supersampled grid: where render's pixels look, worked out apart from its fused pass, for checking it."""
     rays = _camera_frame_rays(rig, lens, supersample)
     return c2w[:3, 3].astype(np.float32), rays @ c2w[:3, :3].T.astype(np.float32)
 
