@@ -325,7 +325,8 @@ def test_the_extension_decision_reads_the_last_two_evaluations():
     plateau = [evals[0], {**evals[1], "sos": 0.902}]
     assert not extension_decision(cfg, plateau, 0, 500)["extend"]
     rising_then_flat = [{"step": 2000, "psnr": 40.0, "sos": 0.85}, evals[0], {**evals[1], "sos": 0.902}]
-    assert extension_decision(cfg, rising_then_flat, 0, 500)["extend"]  # one flat block after a rise: noise
+    decision = extension_decision(cfg, rising_then_flat, 0, 500)  # one flat block after a rise: noise
+    assert decision["extend"] and decision["sos_gain"] == 0.002 and decision["sos_gain_per_block"] == 0.026
     flat_twice = [{"step": 2000, "psnr": 40.0, "sos": 0.897}, evals[0], {**evals[1], "sos": 0.902}]
     assert not extension_decision(cfg, flat_twice, 0, 500)["extend"]
     learning = [evals[0], {**evals[1], "sos": 0.96, "psnr": 40.5}]
