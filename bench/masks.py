@@ -12,6 +12,9 @@ written as a DNG and developed by `develop_raw`, as a scan's frames are. Each sh
 Scores are against sim_truth's rule (stone covers at least half the pixel): IoU, and the false-stone
 and missed-stone pixels, per ring; and the seconds per mask.
 
+Every graph our masks cut is also solved by the max-flow peer, scipy's Dinic, in the same run: the
+seconds of each solver on the same graph, and whether both give the same cut.
+
     python bench/masks.py [--size 320x240] [--step 5] [--stones dark,pale,speckled,grey,meshes]
 
 Prints a table and writes bench/results/masks.json.
@@ -26,11 +29,14 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from unittest import mock
 
 import cv2
 import numpy as np
 from rich.console import Console
 from rich.table import Table
+from scipy import sparse
+from scipy.sparse.csgraph import breadth_first_order, maximum_flow
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from sim.dng import dng_bytes  # noqa: E402
@@ -39,6 +45,7 @@ from sim.scene import World, render  # noqa: E402
 from sim.sensor import SensorModel  # noqa: E402
 from station.capture.plan import default_elevations  # noqa: E402
 from station.process.develop import DevelopSettings, develop_raw  # noqa: E402
+from station.process import masks, maxflow  # noqa: E402
 from station.process.masks import MaskSettings, compute_mask, plate_matched, seed_mask  # noqa: E402
 from station.rig_geometry import RigGeometry  # noqa: E402
 from station.scanfolder import atomic_write_json  # noqa: E402
@@ -78,6 +85,48 @@ def grabcut_mask(shot: np.ndarray, plate: np.ndarray) -> np.ndarray:
     return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
 
 
+def scipy_cut(first, head, capacity, terminal) -> np.ndarray:
+    """The peer: scipy's Dinic on the same graph (source n, sink n + 1), then the nodes the source reaches."""
+    n = first.size - 1
+    rows = np.concatenate([np.repeat(np.arange(n), np.diff(first)), np.full(n, n), np.arange(n)])
+    cols = np.concatenate([head, np.arange(n), np.full(n, n + 1)])
+    caps = np.concatenate([capacity, np.maximum(terminal, 0), np.maximum(-terminal, 0)])
+    graph = sparse.csr_array((caps, (rows, cols)), shape=(n + 2, n + 2))
+    graph.eliminate_zeros()
+    residual = graph - maximum_flow(graph, n, n + 1, method="dinic").flow
+    residual.data = (residual.data > 0).astype(np.int32)
+    residual.eliminate_zeros()
+    side = np.zeros(n + 2, bool)
+    side[breadth_first_order(residual, n, return_predecessors=False)] = True
+    return side[:n]
+
+
+def timed_cuts(mask_fn) -> tuple[np.ndarray, list[dict]]:
+    """Runs `mask_fn()`, solving each graph its cut builds by ours and by the peer: the mask, and per graph
+    the node count, each solver's seconds and whether their cuts agree."""
+    graphs = []
+    building = masks._cut_graph
+
+    def recorded(*args):
+        graph = building(*args)
+        graphs.append(tuple(a.copy() for a in graph))
+        return graph
+
+    with mock.patch.object(masks, "_cut_graph", recorded):
+        mask = mask_fn()
+    rows = []
+    for first, head, sister, capacity, terminal in graphs:
+        residual, left = capacity.copy(), terminal.copy()
+        started = time.perf_counter()
+        maxflow.max_flow(first, head, sister, residual, left)
+        ours = maxflow.source_side(first, head, residual, left)
+        middle = time.perf_counter()
+        peer = scipy_cut(first, head, capacity, terminal)
+        rows.append({"nodes": int(terminal.size), "ours_s": middle - started,
+                     "scipy_dinic_s": time.perf_counter() - middle, "same_cut": bool(np.array_equal(ours, peer))})
+    return mask, rows
+
+
 def stone_specs(names: str) -> list[str]:
     """`make_stone` specs for a comma list of procedural looks (seed 3, or 'look:seed') and 'meshes' (the real
     meshes, when present)."""
@@ -95,14 +144,14 @@ def score(mask: np.ndarray, truth: np.ndarray) -> dict:
             "false_stone_px": int((mask & ~truth).sum()), "missed_stone_px": int((~mask & truth).sum())}
 
 
-def stone_rows(spec: str, size: tuple[int, int], step: int) -> list[dict]:
+def stone_rows(spec: str, size: tuple[int, int], step: int) -> tuple[list[dict], list[dict]]:
     world = World(make_stone(spec), rig=RigGeometry().scaled(*size))
     methods = {
         "ours": lambda shot, plate: compute_mask(shot, plate),
         "ours_before_boundary_steps": lambda shot, plate: compute_mask(shot, plate, BEFORE),
         "grabcut": grabcut_mask,
     }
-    rows = []
+    rows, cuts = [], []
     for ring, elevation in enumerate(default_elevations(6)):
         plate = developed(render(world, elevation, 0.0, stone_present=False).radiance, [ring, AZIMUTHS])
         for a in range(0, AZIMUTHS, step):
@@ -114,7 +163,8 @@ def stone_rows(spec: str, size: tuple[int, int], step: int) -> list[dict]:
                 seconds = time.perf_counter() - started
                 rows.append({"stone": world.stone.name, "ring": ring, "elevation_deg": elevation, "azimuth_index": a,
                              "method": method, "seconds": seconds, **score(mask, frame.mask)})
-    return rows
+            cuts += timed_cuts(lambda: compute_mask(shot, plate))[1]
+    return rows, cuts
 
 
 def summary(rows: list[dict]) -> list[dict]:
@@ -134,6 +184,14 @@ def summary(rows: list[dict]) -> list[dict]:
     return out
 
 
+def max_flow_summary(cuts: list[dict]) -> dict:
+    ours = float(np.mean([c["ours_s"] for c in cuts]))
+    peer = float(np.mean([c["scipy_dinic_s"] for c in cuts]))
+    return {"graphs": len(cuts), "nodes_mean": round(float(np.mean([c["nodes"] for c in cuts])), 1),
+            "ours_ms": round(1e3 * ours, 2), "scipy_dinic_ms": round(1e3 * peer, 2),
+            "ours_over_scipy": round(ours / peer, 3), "same_cut": sum(c["same_cut"] for c in cuts)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="320x240", help="simulated camera size WxH (the scan default)")
@@ -143,7 +201,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "masks.json")
     args = parser.parse_args()
     size = tuple(int(v) for v in args.size.split("x"))
-    rows = [row for spec in stone_specs(args.stones) for row in stone_rows(spec, size, args.step)]
+    rows, cuts = [], []
+    for spec in stone_specs(args.stones):
+        stone, stone_cuts = stone_rows(spec, size, args.step)
+        rows += stone
+        cuts += stone_cuts
     table_rows = summary(rows)
 
     table = Table(title=f"Masks at {size[0]}x{size[1]}: mean IoU against sim truth per ring, worst view, pixels per view")
@@ -166,10 +228,15 @@ def main() -> None:
         "size": list(size), "views_per_ring": AZIMUTHS // args.step,
         "seconds_per_mask": {"ours": round(float(ours), 4), "grabcut": round(float(peer), 4),
                              "ours_over_grabcut": round(float(ours / peer), 3)},
+        "max_flow": max_flow_summary(cuts),
         "summary": table_rows, "rows": rows,
     }
     atomic_write_json(args.out, record)
     print(f"ours {ours:.3f} s/mask, GrabCut {peer:.3f} s/mask (ratio {ours / peer:.2f}); wrote {args.out}")
+    flows = record["max_flow"]
+    print(f"max-flow on {flows['graphs']} cut graphs of {flows['nodes_mean']:.0f} nodes: ours {flows['ours_ms']} ms, "
+          f"scipy's Dinic {flows['scipy_dinic_ms']} ms (ratio {flows['ours_over_scipy']}); "
+          f"same cut on {flows['same_cut']} of {flows['graphs']}")
 
 
 if __name__ == "__main__":

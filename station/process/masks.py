@@ -8,7 +8,7 @@ labelling with a per-pixel background model rather than a guess from colours alo
    make it, or its chromaticity moves (shadows only darken and keep chroma), with thresholds
    from the photon noise measured on the border. The convex hull of those sparse cues
    (stones are nearly convex) is the first guess.
-2. Graph cut (min-cut over 8-neighbour pixels, scipy's max-flow), iterated with its models:
+2. Graph cut (min-cut over 8-neighbour pixels, Boykov-Kolmogorov max-flow, maxflow.py), iterated with its models:
    - background: the plate times a smooth contact-shadow field, fitted as a local plane to
      the current background in log space so it extrapolates up to the stone's edge. Its scale
      follows the stone's size in pixels, as the contact shadow's does (a low camera squeezes the
@@ -45,10 +45,10 @@ from typing import Callable
 import cv2
 import numpy as np
 from numba import njit
-from scipy import ndimage, sparse
-from scipy.sparse.csgraph import maximum_flow
+from scipy import ndimage
 
 from station.errors import BadInputError
+from station.process import maxflow
 
 _LOG_FLOOR = 1e-4  # linear value below which log ratios stop meaning anything
 _NATS_TO_CAPACITY = 100  # max-flow needs integer capacities: hundredths of a nat
@@ -296,34 +296,29 @@ def min_cut(evidence: np.ndarray, features: np.ndarray, smoothness: float, fixed
 
     `evidence` [H, W] is the log-likelihood ratio stone : background in nats; `features`
     [H, W, C] is where edges are read (8 neighbours, weights as in GrabCut: exp(-beta |df|^2)
-    with beta from the mean squared neighbour difference). Solved exactly by max-flow.
+    with beta from the mean squared neighbour difference). Solved exactly by max-flow; of the
+    minimum cuts, the one with the least stone.
     """
-    h, w = evidence.shape
-    n = h * w
-    source, sink = n, n + 1
-    indptr, indices, capacity = _cut_graph(
+    first, head, sister, residual, terminal = _cut_graph(
         np.ascontiguousarray(evidence, dtype=np.float64), np.ascontiguousarray(features, dtype=np.float32),
         float(smoothness), np.ascontiguousarray(fixed_background, dtype=np.bool_))
-    graph = sparse.csr_array((capacity, indices, indptr), shape=(n + 2, n + 2))
-    graph.has_sorted_indices = True
-    flow = maximum_flow(graph, source, sink, method="dinic").flow.tocsr()
-    flow.sort_indices()
-    stone = _source_side(indptr, indices, capacity, flow.indptr, flow.indices, flow.data, source)
-    return stone[:n].reshape(h, w)
+    maxflow.max_flow(first, head, sister, residual, terminal)
+    return maxflow.source_side(first, head, residual, terminal).reshape(evidence.shape)
 
 
+# A pixel's 8 neighbours; the arc back from neighbour k is the neighbour's arc 7 - k
+_NEIGHBOUR_OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 _PAIRS = ((0, 1), (1, 0), (1, 1), (1, -1))  # each neighbour pair once, stored at its first pixel in row-major order
-# A pixel's 8 neighbours in column order, each as (pixel the pair is stored at, relative to this one; its pair)
+# neighbour k's pair as (pixel the pair is stored at, relative to this one; its pair)
 _NEIGHBOURS = (((-1, -1), 2), ((-1, 0), 1), ((-1, 1), 3), ((0, -1), 0), ((0, 0), 0), ((0, 0), 3), ((0, 0), 1),
                ((0, 0), 2))
-_NEIGHBOUR_OFFSETS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 
 
 @njit(cache=True)
 def _cut_graph(evidence, features, smoothness, fixed_background):
-    """The cut's graph in CSR (rows sorted, int32 capacities): pixels, then the source (stone) and the sink.
+    """The cut's graph for `maxflow`: eight arcs a pixel (a neighbour off the image gets an arc of no
+    capacity to itself), int32 capacities, each pixel's terminal capacity stone minus background.
 
-    Built in one pass per row instead of as numpy pair lists, whose assembly cost as much as the max-flow.
     Each neighbour pair's capacity is worked out once and read by both of its pixels."""
     h, w = evidence.shape
     n = h * w
@@ -350,67 +345,30 @@ def _cut_graph(evidence, features, smoothness, fixed_background):
                 weight = _NATS_TO_CAPACITY * smoothness * np.exp(-beta * squared[y, x, k])
                 pair_capacity[y, x, k] = np.int32(np.rint(weight / distance)) + 1
     fixed = np.rint(_NATS_TO_CAPACITY * (_MAX_NATS + 8 * smoothness)) + 8
-    indptr = np.zeros(n + 3, np.int32)
-    indices = np.empty(10 * n, np.int32)  # at most 8 neighbours and the sink per pixel, then the source's row
-    capacity = np.empty(10 * n, np.int32)
-    to_stone = np.empty(n, np.int32)
-    e = 0
+    first = np.arange(0, 8 * n + 1, 8).astype(np.int32)
+    head = np.empty(8 * n, np.int32)
+    sister = np.empty(8 * n, np.int32)
+    residual = np.zeros(8 * n, np.int32)
+    terminal = np.empty(n, np.int32)
     for y in range(h):
         for x in range(w):
             i = y * w + x
-            for j in range(8):
-                yy, xx = y + _NEIGHBOUR_OFFSETS[j][0], x + _NEIGHBOUR_OFFSETS[j][1]
+            for k in range(8):
+                a = 8 * i + k
+                yy, xx = y + _NEIGHBOUR_OFFSETS[k][0], x + _NEIGHBOUR_OFFSETS[k][1]
                 if 0 <= yy < h and 0 <= xx < w:
-                    (sy, sx), k = _NEIGHBOURS[j]
-                    indices[e] = yy * w + xx
-                    capacity[e] = pair_capacity[y + sy, x + sx, k]
-                    e += 1
+                    (sy, sx), pair = _NEIGHBOURS[k]
+                    head[a] = yy * w + xx
+                    sister[a] = 8 * (yy * w + xx) + 7 - k
+                    residual[a] = pair_capacity[y + sy, x + sx, pair]
+                else:
+                    head[a] = i
+                    sister[a] = a
             nats = min(max(evidence[y, x], -_MAX_NATS), _MAX_NATS)
-            to_stone[i] = np.int32(np.rint(_NATS_TO_CAPACITY * max(nats, 0.0)))
+            to_stone = np.rint(_NATS_TO_CAPACITY * max(nats, 0.0))
             to_background = fixed if fixed_background[y, x] else np.rint(_NATS_TO_CAPACITY * max(-nats, 0.0))
-            if to_background > 0:
-                indices[e] = n + 1
-                capacity[e] = np.int32(to_background)
-                e += 1
-            indptr[i + 1] = e
-    for i in range(n):
-        if to_stone[i] > 0:
-            indices[e] = i
-            capacity[e] = to_stone[i]
-            e += 1
-    indptr[n + 1] = e
-    indptr[n + 2] = e
-    return indptr, indices[:e], capacity[:e]
-
-
-@njit(cache=True)
-def _source_side(indptr, indices, capacity, flow_indptr, flow_indices, flow, source):
-    """[nodes] bool: reachable from `source` along edges with capacity left after `flow` (the minimum cut's
-    source side). Both are CSRs with sorted rows; an edge in only one of them has 0 in the other."""
-    nodes = indptr.shape[0] - 1
-    reached = np.zeros(nodes, np.bool_)
-    queue = np.empty(nodes, np.int64)
-    reached[source] = True
-    queue[0] = source
-    head, tail = 0, 1
-    while head < tail:
-        u = queue[head]
-        head += 1
-        i, i_end, e, e_end = indptr[u], indptr[u + 1], flow_indptr[u], flow_indptr[u + 1]
-        while i < i_end or e < e_end:
-            v = min(indices[i] if i < i_end else nodes, flow_indices[e] if e < e_end else nodes)
-            left = 0
-            if i < i_end and indices[i] == v:
-                left += capacity[i]
-                i += 1
-            if e < e_end and flow_indices[e] == v:
-                left -= flow[e]
-                e += 1
-            if left > 0 and not reached[v]:
-                reached[v] = True
-                queue[tail] = v
-                tail += 1
-    return reached
+            terminal[i] = np.int32(to_stone - to_background)
+    return first, head, sister, residual, terminal
 
 
 def chroma_chi2(ratio: np.ndarray, variance: np.ndarray) -> np.ndarray:
