@@ -51,8 +51,8 @@ def _root_distance(node, parent, head, stamp, distance, now):
 
 @njit(cache=True)
 def max_flow(first, head, sister, residual, terminal):
-    """The maximum flow's value. `residual` [arcs] and `terminal` [nodes] (int64) are left as the residual
-    graph: pass copies to keep the capacities."""
+    """The maximum flow's value. `residual` [arcs] and `terminal` [nodes], integer capacities, are left as
+    the residual graph: pass copies to keep the capacities."""
     nodes = first.shape[0] - 1
     tree = np.zeros(nodes, np.int8)
     parent = np.full(nodes, _NO_PARENT, np.int64)
