@@ -35,8 +35,6 @@ import cv2
 import numpy as np
 from rich.console import Console
 from rich.table import Table
-from scipy import sparse
-from scipy.sparse.csgraph import breadth_first_order, maximum_flow
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from sim.dng import dng_bytes  # noqa: E402
@@ -85,25 +83,10 @@ def grabcut_mask(shot: np.ndarray, plate: np.ndarray) -> np.ndarray:
     return (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
 
 
-def scipy_cut(first, head, capacity, terminal) -> np.ndarray:
-    """The peer: scipy's Dinic on the same graph (source n, sink n + 1), then the nodes the source reaches."""
-    n = first.size - 1
-    rows = np.concatenate([np.repeat(np.arange(n), np.diff(first)), np.full(n, n), np.arange(n)])
-    cols = np.concatenate([head, np.arange(n), np.full(n, n + 1)])
-    caps = np.concatenate([capacity, np.maximum(terminal, 0), np.maximum(-terminal, 0)])
-    graph = sparse.csr_array((caps, (rows, cols)), shape=(n + 2, n + 2))
-    graph.eliminate_zeros()
-    residual = graph - maximum_flow(graph, n, n + 1, method="dinic").flow
-    residual.data = (residual.data > 0).astype(np.int32)
-    residual.eliminate_zeros()
-    side = np.zeros(n + 2, bool)
-    side[breadth_first_order(residual, n, return_predecessors=False)] = True
-    return side[:n]
-
-
-def timed_cuts(mask_fn) -> tuple[np.ndarray, list[dict]]:
-    """Runs `mask_fn()`, solving each graph its cut builds by ours and by the peer: the mask, and per graph
-    the node count, each solver's seconds and whether their cuts agree."""
+def timed_cuts(mask_fn) -> list[dict]:
+    """Runs `mask_fn()` again, apart from the timed run (the graphs' copies would cost it time), and solves
+    each graph its cut builds by ours and by the peer: per graph, the node count, each solver's seconds
+    and whether their cuts agree."""
     graphs = []
     building = masks._cut_graph
 
@@ -113,7 +96,7 @@ def timed_cuts(mask_fn) -> tuple[np.ndarray, list[dict]]:
         return graph
 
     with mock.patch.object(masks, "_cut_graph", recorded):
-        mask = mask_fn()
+        mask_fn()
     rows = []
     for first, head, sister, capacity, terminal in graphs:
         residual, left = capacity.copy(), terminal.copy()
@@ -121,10 +104,10 @@ def timed_cuts(mask_fn) -> tuple[np.ndarray, list[dict]]:
         maxflow.max_flow(first, head, sister, residual, left)
         ours = maxflow.source_side(first, head, residual, left)
         middle = time.perf_counter()
-        peer = scipy_cut(first, head, capacity, terminal)
+        _, peer = maxflow.reference_cut(first, head, capacity, terminal)
         rows.append({"nodes": int(terminal.size), "ours_s": middle - started,
                      "scipy_dinic_s": time.perf_counter() - middle, "same_cut": bool(np.array_equal(ours, peer))})
-    return mask, rows
+    return rows
 
 
 def stone_specs(names: str) -> list[str]:
@@ -163,7 +146,7 @@ def stone_rows(spec: str, size: tuple[int, int], step: int) -> tuple[list[dict],
                 seconds = time.perf_counter() - started
                 rows.append({"stone": world.stone.name, "ring": ring, "elevation_deg": elevation, "azimuth_index": a,
                              "method": method, "seconds": seconds, **score(mask, frame.mask)})
-            cuts += timed_cuts(lambda: compute_mask(shot, plate))[1]
+            cuts += timed_cuts(lambda: compute_mask(shot, plate))
     return rows, cuts
 
 

@@ -134,11 +134,10 @@ def masks_section(name: str, data: dict) -> Section:
              "simulator's truth per ring, lowest ring first.", ""]
     lines += table(["stone"] + methods, rows)
     lines += [f"Seconds a mask: {', '.join(f'{k} {v}' for k, v in speed.items())}.", ""]
-    if "max_flow" in data:
-        flows = data["max_flow"]
-        lines += [f"Max-flow, on the {flows['graphs']} graphs our masks cut (mean {flows['nodes_mean']:.0f} nodes): "
-                  f"ours {flows['ours_ms']} ms a graph, scipy's Dinic {flows['scipy_dinic_ms']} ms "
-                  f"(ratio {flows['ours_over_scipy']}); the same cut on {flows['same_cut']} of {flows['graphs']}.", ""]
+    flows = data["max_flow"]
+    lines += [f"Max-flow, on the {flows['graphs']} graphs our masks cut (mean {flows['nodes_mean']:.0f} nodes): "
+              f"ours {flows['ours_ms']} ms a graph, scipy's Dinic {flows['scipy_dinic_ms']} ms "
+              f"(ratio {flows['ours_over_scipy']}); the same cut on {flows['same_cut']} of {flows['graphs']}.", ""]
     series = [Series(m, [(sum(r["seconds_mean"] for r in found[m]) / len(found[m]),
                           1.0 - sum(r["iou_mean"] for r in found[m]) / len(found[m]))
                          for found in by_stone.values() if m in found]) for m in methods]

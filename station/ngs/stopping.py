@@ -41,8 +41,9 @@ def extension_decision(cfg: ExtendConfig, evals: list[dict], extra_steps_so_far:
     if sos is not None and sos_before is not None:
         window = [e["sos"] for e in evals[-1 - cfg.sos_window:] if e.get("sos") is not None]
         decision["sos_gain"] = round(sos - sos_before, 4)
-        decision["sos_gain_per_block"] = round((sos - window[0]) / (len(window) - 1), 4)  # what the rule reads
-        if sos < cfg.sos_target and decision["sos_gain_per_block"] >= cfg.min_sos_gain:
+        per_block = (sos - window[0]) / (len(window) - 1)  # what the rule reads
+        decision["sos_gain_per_block"] = round(per_block, 4)
+        if sos < cfg.sos_target and per_block >= cfg.min_sos_gain:
             return {**decision, "extend": True, "reason": f"SOS {sos:.3f} below {cfg.sos_target} and still rising"}
     if psnr_gain >= cfg.min_psnr_gain_db and last["psnr"] < cfg.psnr_target_db:
         return {**decision, "extend": True, "reason": f"held-out PSNR still rising ({psnr_gain:+.2f} dB)"}

@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from scipy import sparse
+from scipy.sparse.csgraph import breadth_first_order, maximum_flow
 
-_FREE, _SOURCE_TREE, _SINK_TREE = 0, 1, 2
+_FREE, _SOURCE_TREE, _SINK_TREE = 0, 1, 2  # which tree a node is in; a free node also has no parent
 _NO_PARENT, _TERMINAL, _ORPHAN = -1, -2, -3
 _FAR = 1 << 60
 
@@ -36,7 +38,7 @@ def _root_distance(node, parent, head, stamp, distance, now):
             stamp[j] = now
             distance[j] = 1
             break
-        if arc == _ORPHAN or arc == _NO_PARENT:
+        if arc == _ORPHAN:
             return _FAR
         j = head[arc]
     j = node
@@ -177,7 +179,7 @@ def max_flow(first, head, sister, residual, terminal):
             for a in range(first[i], first[i + 1]):
                 inward = sister[a] if side == _SOURCE_TREE else a
                 j = head[a]
-                if residual[inward] <= 0 or tree[j] != side or parent[j] == _NO_PARENT:
+                if residual[inward] <= 0 or tree[j] != side:
                     continue
                 steps = _root_distance(j, parent, head, stamp, distance, now)
                 if steps < best_distance:
@@ -191,7 +193,7 @@ def max_flow(first, head, sister, residual, terminal):
             parent[i] = _NO_PARENT
             for a in range(first[i], first[i + 1]):
                 j = head[a]
-                if tree[j] != side or parent[j] == _NO_PARENT:
+                if tree[j] != side:
                     continue
                 inward = sister[a] if side == _SOURCE_TREE else a
                 if residual[inward] > 0 and not queued[j]:
@@ -229,3 +231,22 @@ def source_side(first, head, residual, terminal):
                 queue[count] = j
                 count += 1
     return reached
+
+
+def reference_cut(first: np.ndarray, head: np.ndarray, capacity: np.ndarray,
+                  terminal: np.ndarray) -> tuple[int, np.ndarray]:
+    """The peer the tests and bench/masks.py hold `max_flow` to: scipy's Dinic on the same graph (source n,
+    sink n + 1), then the nodes the source reaches in its residual graph -> (flow, source side [nodes])."""
+    n = first.size - 1
+    rows = np.concatenate([np.repeat(np.arange(n), np.diff(first)), np.full(n, n), np.arange(n)])
+    cols = np.concatenate([head, np.arange(n), np.full(n, n + 1)])
+    caps = np.concatenate([capacity, np.maximum(terminal, 0), np.maximum(-terminal, 0)]).astype(np.int32)
+    graph = sparse.csr_array((caps, (rows, cols)), shape=(n + 2, n + 2))  # parallel arcs summed
+    graph.eliminate_zeros()  # the masks' arcs off the image: no capacity, to the pixel itself
+    result = maximum_flow(graph, n, n + 1, method="dinic")
+    residual = graph - result.flow
+    residual.data = (residual.data > 0).astype(np.int32)
+    residual.eliminate_zeros()
+    side = np.zeros(n + 2, bool)
+    side[breadth_first_order(residual, n, return_predecessors=False)] = True
+    return int(result.flow_value), side[:n]
