@@ -8,6 +8,7 @@ import torch
 
 from station.errors import BadInputError
 from station.ngs import _kernels, _project_kernels
+from station.ngs.conventions import TILE
 from station.ngs.raster import pixel_contributors, rasterization
 
 BACKENDS = ["cpu", "torch"]
@@ -167,11 +168,14 @@ def test_row_culling_drops_only_rows_that_composite_nothing():
     bins = _kernels.bin_gaussians(m2, conics, op, radii, depths, width, height)
     assert (bins[4] < width / 2).mean() > 0.5                               # culling has rows to cull here
     outputs = {}
+    every_row = np.tile(np.array([0, TILE], np.uint8), (len(bins[1]), 1))
     for name, extent in (("culled", bins[4]), ("whole tile", np.full_like(bins[4], 1e30))):
-        img, t_final, n_proc = _kernels.rasterize_fwd(m2, conics, feats, op, bins[0], bins[1], extent, width,
-                                                      height, True)
+        img, t_final, n_proc, taken = _kernels.rasterize_fwd(m2, conics, feats, op, bins[0], bins[1], extent, width,
+                                                             height, True)
+        if name == "whole tile":  # and the backward walks every row, not only those the forward composited in
+            taken = every_row
         g_img = np.linspace(-1, 1, img.size, dtype=np.float32).reshape(img.shape)
-        slots = _kernels.rasterize_bwd(m2, conics, feats, op, np.zeros(3, np.float32), bins[0], bins[1], extent,
+        slots = _kernels.rasterize_bwd(m2, conics, feats, op, np.zeros(3, np.float32), bins[0], bins[1], taken,
                                        width, height, img, t_final, n_proc, g_img, np.ones_like(t_final), True)
         outputs[name] = (img, t_final, n_proc, slots)
     culled, whole = outputs["culled"], outputs["whole tile"]

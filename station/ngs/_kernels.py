@@ -121,7 +121,8 @@ def _row_span(my, ext, y0):
 
 
 U8, RADIX_MASK = np.uint64(8), np.uint64(255)
-TILE_U, ONE_U = np.uint64(TILE), np.uint64(1)
+TILE_U, ONE_U, ZERO_U = np.uint64(TILE), np.uint64(1), np.uint64(0)
+TILE_PIX_U = np.uint64(TILE_PIX)
 
 
 @njit(cache=True)
@@ -308,7 +309,9 @@ def _live_rows(live):
 @njit(parallel=True, fastmath=True, cache=True)
 def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, extent_y, width, height, fast):
     """Composite front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W] int32
-    (position in the tile list where the pixel stopped; the list length if it never did)."""
+    (position in the tile list where the pixel stopped; the list length if it never did), taken [M, 2] uint8
+    (per intersection, the tile rows [first, last) where it composited a pixel: only there can the backward
+    find a gradient; [0, 0) for none)."""
     dt = means2d.dtype
     d_ch = colors.shape[1]
     tw = (width + TILE - 1) // TILE
@@ -316,6 +319,7 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
     feats = np.zeros((height, width, d_ch), dt)
     t_final = np.ones((height, width), dt)
     n_proc = np.zeros((height, width), np.int32)
+    taken = np.zeros((tile_offsets[ntiles], 2), np.uint8)
     for t in prange(ntiles):
         start, end = tile_offsets[t], tile_offsets[t + 1]
         px, py, inside = _tile_pixels(t, tw, width, height, dt)
@@ -337,6 +341,7 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
             p0, p1 = max(p0, lo), min(p1, hi)
             _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
                     px, py, alpha, expo, fast, ibuf, p0, p1)
+            first, last = TILE_PIX_U, ZERO_U
             for p in range(p0, p1):
                 a = alpha[p]
                 valid = (a >= ALPHA_MIN) & (live[p] > ZERO)
@@ -347,6 +352,11 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
                 T[p] = next_t if take else T[p]
                 live[p] = ZERO if stop else live[p]
                 stop_at[p] = k if stop else stop_at[p]
+                first = min(first, p if take else TILE_PIX_U)
+                last = max(last, p + ONE_U if take else ZERO_U)
+            if first < last:
+                taken[start + k, 0] = first // TILE_U
+                taken[start + k, 1] = (last + TILE_U - ONE_U) // TILE_U
             for d in range(d_ch):
                 c = colors[g, d]
                 for p in range(p0, p1):
@@ -363,7 +373,7 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
                 n_proc[y, x] = stop_at[p]
                 for d in range(d_ch):
                     feats[y, x, d] = acc[d, p]
-    return feats, t_final, n_proc
+    return feats, t_final, n_proc, taken
 
 
 @njit(parallel=True, fastmath=True, cache=True)
@@ -418,10 +428,10 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, isect_gid, extent_y, width, height,
+def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, isect_gid, taken, width, height,
                   feats, t_final, n_proc, g_feats, g_alpha, fast):
     """Per-intersection gradients in list order -> slots [M, 6 + D]: d means2d (2), d conic (3), d colour (D),
-    d opacity (1)."""
+    d opacity (1). Walks only the rows the forward composited in (`taken`); the rest add nothing."""
     dt = means2d.dtype
     d_ch = colors.shape[1]
     tw = (width + TILE - 1) // TILE
@@ -433,7 +443,6 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         if end == start:
             continue
         px, py, inside = _tile_pixels(t, tw, width, height, dt)
-        y0 = (t // tw) * TILE
         T = np.ones(TILE_PIX, dt)
         tn = np.zeros(TILE_PIX, dt)
         limit = np.zeros(TILE_PIX, np.int32)
@@ -447,7 +456,6 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         gda = np.empty(TILE_PIX, dt)
         inv1a = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
-        row_limit = np.zeros(TILE, np.int32)  # per row, the longest any of its pixels composites
         kmax = 0
         for p in range(TILE_PIX):
             if inside[p]:
@@ -456,22 +464,19 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 tn[p] = t_final[y, x]
                 limit[p] = n_proc[y, x]
                 kmax = max(kmax, n_proc[y, x])
-                row_limit[p // TILE] = max(row_limit[p // TILE], n_proc[y, x])
                 ga[p] = g_alpha[y, x]
                 for d in range(d_ch):
                     go[d, p] = g_feats[y, x, d]
                     rest[d, p] = feats[y, x, d] + t_final[y, x] * background[d]
         for k in range(kmax):
             s = start + k
+            if taken[s, 0] >= taken[s, 1]:
+                continue
+            p0, p1 = np.uint64(taken[s, 0]) * TILE_U, np.uint64(taken[s, 1]) * TILE_U
             g = isect_gid[s]
             mx, my = means2d[g, 0], means2d[g, 1]
             ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
             op = opacities[g]
-            p0, p1 = _row_span(my, extent_y[g], y0)
-            while p0 < p1 and row_limit[p0 // TILE_U] <= k:  # rows done before this Gaussian add nothing
-                p0 += TILE_U
-            while p1 > p0 and row_limit[(p1 - ONE_U) // TILE_U] <= k:
-                p1 -= TILE_U
             _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, p0, p1)
             for p in range(p0, p1):
                 a = alpha[p]

@@ -236,8 +236,8 @@ class _Rasterize(torch.autograd.Function):
         fast = means2d.dtype == torch.float32
         bins = _kernels.bin_gaussians(arrays[0], arrays[1], arrays[3], radii.numpy(), depths.detach().numpy(), width,
                                       height)
-        img, t_final, n_proc = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], bins[4], width, height, fast)
-        ctx.state = (arrays, background.detach().numpy(), bins, img, t_final, n_proc, width, height, fast)
+        img, t_final, n_proc, taken = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], bins[4], width, height, fast)
+        ctx.state = (arrays, background.detach().numpy(), bins, img, t_final, n_proc, taken, width, height, fast)
         t_final_t = torch.from_numpy(t_final)[..., None]                                   # [H, W, 1]
         img_t = torch.from_numpy(img)
         if bool(background.any()):  # a black background (the trainer's) costs no image-sized ops
@@ -246,8 +246,8 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_img: Tensor, g_alpha: Tensor):
-        arrays, bg, bins, img, t_final, n_proc, width, height, fast = ctx.state
-        slots = _kernels.rasterize_bwd(*arrays, bg, bins[0], bins[1], bins[4], width, height, img, t_final, n_proc,
+        arrays, bg, bins, img, t_final, n_proc, taken, width, height, fast = ctx.state
+        slots = _kernels.rasterize_bwd(*arrays, bg, bins[0], bins[1], taken, width, height, img, t_final, n_proc,
                                        g_img.contiguous().numpy(), g_alpha[..., 0].contiguous().numpy(), fast)
         red = torch.from_numpy(_kernels.reduce_per_gaussian(slots, bins[2], bins[3]))       # [N, 6 + D]
         d = slots.shape[1] - 6
@@ -355,7 +355,7 @@ def pixel_contributors(
                                                 near_plane)
         fast = means.dtype == torch.float32
         feats = np.zeros((means.shape[0], 1), m2.dtype)
-        _, _, n_proc = _kernels.rasterize_fwd(m2, conics, feats, opac, bins[0], bins[1], bins[4], width, height, fast)
+        _, _, n_proc, _ = _kernels.rasterize_fwd(m2, conics, feats, opac, bins[0], bins[1], bins[4], width, height, fast)
         offsets, ids = _kernels.list_contributors(m2, conics, opac, bins[0], bins[1], bins[4], width, height, n_proc,
                                                   fast)
         return torch.from_numpy(offsets).to(means.device), torch.from_numpy(ids).to(means.device)
