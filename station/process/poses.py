@@ -32,6 +32,7 @@ from station.process.photometry import ring_gains
 from station.process.rig_model import PosedView, RigModel, calibrate_rig
 from station.process.transforms import PosedFrame, Transforms, read_transforms, write_transforms
 from station.process.visual_hull import carve, ring_frame
+from station.process.workers import map_in_threads
 from station.rig_geometry import RigGeometry
 from station.scanfolder import ScanFolder, atomic_write_json, atomic_write_with
 
@@ -245,29 +246,35 @@ def _normalise_ring_exposure(scan: ScanFolder, rec: pycolmap.Reconstruction, ref
     """
     ring_of = {r.name: f"{r.elevation_deg:g}" for r in refs}
     azimuth_of = {r.name: float(r.azimuth_deg) for r in refs}
-    observations = []
-    for image in rec.images.values():
-        if not image.has_pose or image.name not in ring_of:
-            continue
-        luminance = read_png16(scan.images_dir / image.name).mean(axis=2)  # [H, W]
-        box = cv2.blur(luminance, (3, 3))
-        for p in image.points2D:
-            if p.has_point3D():
-                x, y = (min(max(int(v), 0), n - 1) for v, n in zip(p.xy, box.shape[::-1]))
-                if box[y, x] > 1e-3:
-                    observations.append((p.point3D_id, ring_of[image.name], azimuth_of[image.name],
-                                         float(np.log(box[y, x]))))
+    tracked = [(image.name, [(p.point3D_id, p.xy) for p in image.points2D if p.has_point3D()])
+               for image in rec.images.values() if image.has_pose and image.name in ring_of]
+
+    def observe(name_points: tuple[str, list]) -> list[tuple[int, str, float, float]]:
+        name, points = name_points
+        box = cv2.blur(read_png16(scan.images_dir / name).mean(axis=2), (3, 3))  # [H, W] luminance
+        seen = []
+        for point_id, xy in points:
+            x, y = (min(max(int(v), 0), n - 1) for v, n in zip(xy, box.shape[::-1]))
+            if box[y, x] > 1e-3:
+                seen.append((point_id, ring_of[name], azimuth_of[name], float(np.log(box[y, x]))))
+        return seen
+
+    observations = [o for seen in map_in_threads(observe, tracked) for o in seen]
     gains = {ring: gain if abs(gain - 1.0) > min_change else 1.0 for ring, gain in ring_gains(observations).items()}
-    for ref in refs:
-        gain = gains.get(ring_of[ref.name], 1.0)
-        if gain != 1.0:
-            path = scan.images_dir / ref.name
+    rescale = [(scan.images_dir / ref.name, gains.get(ring_of[ref.name], 1.0)) for ref in refs]
+    rescale += [(scan.images_linear_dir / f"{Path(entry.file).stem}.exr", gains.get(f"{entry.elevation_deg:g}", 1.0))
+                for entry in scan.read_manifest()]
+
+    def rewrite(path_gain: tuple[Path, float]) -> None:
+        path, gain = path_gain
+        if gain == 1.0:
+            return
+        if path.suffix == ".png":
             write_png16(path, read_png16(path) * np.float32(gain))
-    for entry in scan.read_manifest():
-        path = scan.images_linear_dir / f"{Path(entry.file).stem}.exr"
-        gain = gains.get(f"{entry.elevation_deg:g}", 1.0)
-        if gain != 1.0 and path.is_file():
+        elif path.is_file():
             write_exr_half(path, read_exr(path) * np.float32(gain))
+
+    map_in_threads(rewrite, rescale)
     return gains
 
 
@@ -286,16 +293,17 @@ def _lens_of(rec: pycolmap.Reconstruction, settings: PoseSettings, flags: list[s
 def _undistort_scan(scan: ScanFolder, undistort: Undistortion) -> None:
     """Undistort, once and in place, every developed image, mask and linear EXR (plates too): what training
     and the mask re-cut read then all share the pinhole camera."""
-    for folder in (scan.images_dir, scan.masks_dir):
-        for path in sorted(folder.glob("*.png")):
-            data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if data is None:
-                raise ScanFolderError(f"{path}: unreadable image")
-            out = undistort.mask(data) if folder == scan.masks_dir else undistort.image(data)
-            _rewrite_png(path, out)
-    if scan.images_linear_dir.is_dir():
-        for path in sorted(scan.images_linear_dir.glob("*.exr")):
+    def rewrite(path: Path) -> None:
+        if path.suffix == ".exr":
             write_exr_half(path, undistort.image(read_exr(path)))
+            return
+        data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if data is None:
+            raise ScanFolderError(f"{path}: unreadable image")
+        _rewrite_png(path, undistort.mask(data) if path.parent == scan.masks_dir else undistort.image(data))
+
+    exrs = sorted(scan.images_linear_dir.glob("*.exr")) if scan.images_linear_dir.is_dir() else []
+    map_in_threads(rewrite, sorted(scan.images_dir.glob("*.png")) + sorted(scan.masks_dir.glob("*.png")) + exrs)
 
 
 def _rewrite_png(path: Path, data: np.ndarray) -> None:

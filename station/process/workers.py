@@ -1,11 +1,12 @@
 """Per-frame work spread over worker processes: developing and matting a shot is single-threaded
-numpy and OpenCV, so a scan's 240 shots use one core unless each worker takes its own."""
+numpy and OpenCV, so a scan's 240 shots use one core unless each worker takes its own. Reading and
+rewriting image files needs only threads: the codecs release the GIL."""
 
 from __future__ import annotations
 
 import multiprocessing
 import os
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from typing import Callable, Iterable, TypeVar
 
 Job = TypeVar("Job")
@@ -39,6 +40,17 @@ def map_in_workers(
     spawn = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(count, mp_context=spawn, initializer=_start_worker, initargs=(set_context, context)) as pool:
         return list(pool.map(work, jobs, chunksize=max(1, len(jobs) // (8 * count))))
+
+
+def map_in_threads(work: Callable[[Job], Result], jobs: Iterable[Job]) -> list[Result]:
+    """`work` over `jobs`, results in order, on one thread per available core; for work that spends its time
+    in codecs (PNG, EXR) that release the GIL. An exception is raised here, from the job that failed."""
+    jobs = list(jobs)
+    count = min(available_cores(), len(jobs))
+    if count <= 1:
+        return [work(job) for job in jobs]
+    with ThreadPoolExecutor(count) as pool:
+        return list(pool.map(work, jobs))
 
 
 def _start_worker(set_context: Callable[[Context], None], context: Context) -> None:
