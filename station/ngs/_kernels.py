@@ -537,7 +537,7 @@ def reduce_per_gaussian(slot_grads, gauss_offsets, gauss_slots):
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, extent_y, width, height, n_proc, fast,
+def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, taken, width, height, n_proc, fast,
                        counts, cursor, ids, fill):
     """One pass over every pixel's contributors: count them (fill=False) or write their ids (fill=True)."""
     dt = means2d.dtype
@@ -545,7 +545,6 @@ def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, exte
     for t in prange(tile_offsets.shape[0] - 1):
         start = tile_offsets[t]
         px, py, inside = _tile_pixels(t, tw, width, height, dt)
-        y0 = (t // tw) * TILE
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
@@ -554,8 +553,11 @@ def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, exte
             if inside[p]:
                 kmax = max(kmax, n_proc[int(py[p]), int(px[p])])
         for k in range(kmax):
-            g = isect_gid[start + k]
-            p0, p1 = _row_span(means2d[g, 1], extent_y[g], y0)
+            s = start + k
+            if taken[s, 0] >= taken[s, 1]:
+                continue
+            p0, p1 = np.uint64(taken[s, 0]) * TILE_U, np.uint64(taken[s, 1]) * TILE_U
+            g = isect_gid[s]
             _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
                     px, py, alpha, expo, fast, ibuf, p0, p1)
             for p in range(p0, p1):
@@ -568,14 +570,15 @@ def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, exte
                         counts[pix + 1] += 1
 
 
-def list_contributors(means2d, conics, opacities, tile_offsets, isect_gid, extent_y, width, height, n_proc, fast):
-    """Per pixel (row-major), the Gaussian ids composited front to back -> offsets [H*W+1], ids [M]."""
+def list_contributors(means2d, conics, opacities, tile_offsets, isect_gid, taken, width, height, n_proc, fast):
+    """Per pixel (row-major), the Gaussian ids composited front to back -> offsets [H*W+1], ids [M]; n_proc and
+    taken from `rasterize_fwd`."""
     counts = np.zeros(height * width + 1, np.int64)
     empty = np.zeros(0, np.int64)
-    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, extent_y, width, height, n_proc, fast,
+    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, taken, width, height, n_proc, fast,
                        counts, empty, empty, False)
     offsets = np.cumsum(counts)
     ids = np.empty(offsets[-1], np.int64)
-    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, extent_y, width, height, n_proc, fast,
+    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, taken, width, height, n_proc, fast,
                        counts, offsets[:-1].copy(), ids, True)
     return offsets, ids

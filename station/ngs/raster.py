@@ -355,7 +355,8 @@ def pixel_contributors(
                                                 near_plane)
         fast = means.dtype == torch.float32
         feats = np.zeros((means.shape[0], 1), m2.dtype)
-        _, _, n_proc, _ = _kernels.rasterize_fwd(m2, conics, feats, opac, bins[0], bins[1], bins[4], width, height, fast)
-        offsets, ids = _kernels.list_contributors(m2, conics, opac, bins[0], bins[1], bins[4], width, height, n_proc,
+        _, _, n_proc, taken = _kernels.rasterize_fwd(m2, conics, feats, opac, bins[0], bins[1], bins[4], width, height,
+                                                     fast)
+        offsets, ids = _kernels.list_contributors(m2, conics, opac, bins[0], bins[1], taken, width, height, n_proc,
                                                   fast)
         return torch.from_numpy(offsets).to(means.device), torch.from_numpy(ids).to(means.device)
