@@ -5,7 +5,9 @@ rewriting image files needs only threads: the codecs release the GIL."""
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.connection
 import os
+import threading
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from typing import Callable, Iterable, TypeVar
 
@@ -57,5 +59,13 @@ def _start_worker(set_context: Callable[[Context], None], context: Context) -> N
     """One thread per worker: the workers together take the cores."""
     import cv2
 
+    threading.Thread(target=_exit_with_parent, daemon=True).start()
     cv2.setNumThreads(1)
     set_context(context)
+
+
+def _exit_with_parent() -> None:
+    """A worker outlives a parent that is killed or exits at once (a fenced batch stage): it waits on the
+    job queue, whose write end it holds itself, and keeps the parent's stdout open. Leave with the parent."""
+    multiprocessing.connection.wait([multiprocessing.parent_process().sentinel])
+    os._exit(1)
