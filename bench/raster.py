@@ -1,5 +1,5 @@
-"""Benchmark of the CPU rasteriser: one full training step and forward-only render, on the scene of
-docs/cpu-rasterizer.md. Prints two tables and writes bench/results/raster.json.
+"""Benchmark of the CPU rasteriser: one full training step and forward-only render, on `bench_scene`
+(N random Gaussians in a cube before the camera). Prints two tables and writes bench/results/raster.json.
 
     python bench/raster.py            # headline configs, sweeps at reduced range (~2-3 min)
     python bench/raster.py --full     # sweeps 10k..400k Gaussians and 128^2..1024^2
