@@ -4,8 +4,9 @@ Layout follows gsplat: every (tile, Gaussian) intersection sits in a per-tile, d
 run in parallel (prange); inside a tile the loop is over Gaussians outside and the tile's 256 pixels
 inside, branch-free, so LLVM vectorises it. `fast=True` uses a polynomial exp (rel. error ~1e-7, float32)
 because math.exp blocks vectorisation; float64 callers (gradcheck) pass fast=False for math.exp. The
-backward gives every intersection its own gradient slot and reduces them per Gaussian in a fixed order:
-no atomics, deterministic. Keep every kernel and its helpers in this one module (numba's cache key).
+forward records the tile rows each intersection composited in; the backward walks only those, gives every
+intersection its own gradient slot and reduces them per Gaussian in a fixed order: no atomics, deterministic.
+Keep every kernel and its helpers in this one module (numba's cache key).
 """
 
 from __future__ import annotations
