@@ -428,6 +428,12 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
     return out
 
 
+@njit(cache=True)
+def _taken_span(taken, s):
+    """Tile-local pixels [p0, p1) of the rows intersection s composited in (`rasterize_fwd`); empty if none."""
+    return np.uint64(taken[s, 0]) * TILE_U, np.uint64(taken[s, 1]) * TILE_U
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, isect_gid, taken, width, height,
                   feats, t_final, n_proc, g_feats, g_alpha, fast):
@@ -471,9 +477,9 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                     rest[d, p] = feats[y, x, d] + t_final[y, x] * background[d]
         for k in range(kmax):
             s = start + k
-            if taken[s, 0] >= taken[s, 1]:
+            p0, p1 = _taken_span(taken, s)
+            if p0 >= p1:
                 continue
-            p0, p1 = np.uint64(taken[s, 0]) * TILE_U, np.uint64(taken[s, 1]) * TILE_U
             g = isect_gid[s]
             mx, my = means2d[g, 0], means2d[g, 1]
             ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
@@ -555,9 +561,9 @@ def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, take
                 kmax = max(kmax, n_proc[int(py[p]), int(px[p])])
         for k in range(kmax):
             s = start + k
-            if taken[s, 0] >= taken[s, 1]:
+            p0, p1 = _taken_span(taken, s)
+            if p0 >= p1:
                 continue
-            p0, p1 = np.uint64(taken[s, 0]) * TILE_U, np.uint64(taken[s, 1]) * TILE_U
             g = isect_gid[s]
             _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
                     px, py, alpha, expo, fast, ibuf, p0, p1)
