@@ -267,14 +267,12 @@ def _normalise_ring_exposure(scan: ScanFolder, rec: pycolmap.Reconstruction, ref
 
     def rewrite(path_gain: tuple[Path, float]) -> None:
         path, gain = path_gain
-        if gain == 1.0:
-            return
         if path.suffix == ".png":
             write_png16(path, read_png16(path) * np.float32(gain))
         elif path.is_file():
             write_exr_half(path, read_exr(path) * np.float32(gain))
 
-    map_in_threads(rewrite, rescale)
+    map_in_threads(rewrite, [(path, gain) for path, gain in rescale if gain != 1.0])
     return gains
 
 
