@@ -123,6 +123,21 @@ def _verdicts(run: dict) -> dict[str, tuple]:
     return {name: (job["state"], job["verdict"]) for name, job in run["jobs"].items()}
 
 
+def test_without_the_token_the_runner_says_how_to_connect(shot, cluster, tmp_path):
+    """First in the module, so its setup shoots the scans and starts the cluster and no batch run's setup adds to
+    that; the scans first, which need no Ray, while the other worker may still hold the Ray slot.
+
+    Ray's driver tries the cluster 20 times a second apart before it gives up (RAY_NUM_REDIS_GET_RETRIES);
+    the cluster refuses a wrong token on every try, so three show the same refusal in a sixth of the time."""
+    scans = copy_scans(shot[:1], tmp_path / "scans")
+    queue = tmp_path / "queue.sqlite"
+    assert batch("add", *scans, "--queue", queue).returncode == 0
+    result = batch("run", *RUN, "--ray-address", cluster["cluster"].address, "--queue", queue,
+                   env={**cluster["env"], "RAY_AUTH_TOKEN": secrets.token_hex(32), "RAY_NUM_REDIS_GET_RETRIES": "3"})
+    assert result.returncode == 3 and "RAY_AUTH_MODE=token" in result.stderr and "Traceback" not in result.stderr
+    assert status(queue)[scans[0].name]["state"] == "queued"
+
+
 def test_without_a_fault_every_scan_finishes_and_the_stages_spread_over_the_nodes(clean, cluster):
     assert all(state == "done" for state, _ in _verdicts(clean).values()), clean["stderr"][-3000:]
     nodes = {_node_of(e["detail"]["node"]) for scan in clean["scans"] for e in events(clean["queue"], scan)
@@ -182,18 +197,6 @@ def test_ray_writes_to_its_log_beside_the_queue_not_to_the_terminal(runs):
     assert not [line for line in terminal.splitlines() if any(mark in line for mark in RAY_LINES)]
     ray_log = ray_log_path(faulty["queue"]).read_text()
     assert "(raylet)" in ray_log and "Connected to Ray cluster" in ray_log
-
-
-def test_without_the_token_the_runner_says_how_to_connect(cluster, tmp_path, shot):
-    """Ray's driver tries the cluster 20 times a second apart before it gives up (RAY_NUM_REDIS_GET_RETRIES);
-    the cluster refuses a wrong token on every try, so three show the same refusal in a sixth of the time."""
-    scans = copy_scans(shot[:1], tmp_path / "scans")
-    queue = tmp_path / "queue.sqlite"
-    assert batch("add", *scans, "--queue", queue).returncode == 0
-    result = batch("run", *RUN, "--ray-address", cluster["cluster"].address, "--queue", queue,
-                   env={**cluster["env"], "RAY_AUTH_TOKEN": secrets.token_hex(32), "RAY_NUM_REDIS_GET_RETRIES": "3"})
-    assert result.returncode == 3 and "RAY_AUTH_MODE=token" in result.stderr and "Traceback" not in result.stderr
-    assert status(queue)[scans[0].name]["state"] == "queued"
 
 
 def test_training_prefers_a_gpu_node_and_the_other_stages_keep_off_it():
