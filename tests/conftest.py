@@ -27,7 +27,9 @@ if _WORKER:
         os.environ[_name] = "1"
     # numba rewrites a function's whole cache index on each save, so two processes saving different
     # signatures of one kernel at once can pair an index entry with the other's code: a cache per worker.
-    os.environ.setdefault("NUMBA_CACHE_DIR", str(_ROOT / ".pytest_cache" / "numba" / _WORKER))
+    # The controller's NUMBA_CACHE_DIR (the warm cache, set below) is inherited: replace it, keep any other.
+    if os.environ.get("NUMBA_CACHE_DIR", str(_WARM_CACHE)) == str(_WARM_CACHE):
+        os.environ["NUMBA_CACHE_DIR"] = str(_ROOT / ".pytest_cache" / "numba" / _WORKER)
     _warm_stamp, _own_stamp = _WARM_CACHE / _STAMP, Path(os.environ["NUMBA_CACHE_DIR"]) / _STAMP
     if _warm_stamp.is_file() and (not _own_stamp.is_file() or _own_stamp.read_bytes() != _warm_stamp.read_bytes()):
         shutil.copytree(_WARM_CACHE, _own_stamp.parent, dirs_exist_ok=True)  # start from the controller's warm cache
