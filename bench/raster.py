@@ -134,7 +134,8 @@ def breakdown(scene: dict, params: list[torch.Tensor], step_times: tuple[float, 
     def project(degree: int, k: np.ndarray) -> None:
         out = _project_kernels.project_fwd(*gauss, k, degree, *cams, w, h, 0.01, 1e10)
         grads = [upstream(a.shape) for a in (out[0], out[1], out[2], out[4])]
-        _project_kernels.project_bwd(*gauss, k, degree, *cams, w, h, out[3], out[4], *grads)
+        # want_pose False: a training step's poses are constants
+        _project_kernels.project_bwd(*gauss, k, degree, *cams, w, h, out[3], out[4], *grads, False)
 
     m2, conics, depths, radii, colors = _project_kernels.project_fwd(*gauss, coeffs, deg, *cams, w, h, 0.01, 1e10)
     m2, conics, depths, radii, colors = m2[0], conics[0], depths[0], radii[0], colors[0]

@@ -148,8 +148,8 @@ def test_a_zero_quaternion_is_refused_and_one_with_zero_components_is_not():
 
 
 def test_row_culling_drops_only_rows_that_composite_nothing():
-    """The kernels skip tile rows outside each Gaussian's alpha >= 1/255 ellipse; on thin, tilted, huge and
-    barely visible Gaussians that must give the same image, stopping points and gradients as no culling."""
+    """The kernels skip the tile rows and strips outside each Gaussian's alpha >= 1/255 ellipse; on thin, tilted,
+    huge and barely visible Gaussians that must give the same image, stopping points and gradients as no culling."""
     g = torch.Generator().manual_seed(5)
     n, width, height = 300, 64, 48
     means = torch.rand(n, 3, generator=g) * torch.tensor([2.0, 1.6, 1.0]) + torch.tensor([-1.0, -0.8, 2.5])
@@ -166,9 +166,9 @@ def test_row_culling_drops_only_rows_that_composite_nothing():
         campos.numpy(), width, height, 0.01, 1e10)
     m2, conics, depths, radii, op, feats = m2[0], conics[0], depths[0], radii[0], opacities.numpy(), colors.numpy()
     bins = _kernels.bin_gaussians(m2, conics, op, radii, depths, width, height)
-    assert (bins[4] < width / 2).mean() > 0.5                               # culling has rows to cull here
+    assert (bins[4] < width / 2).mean() > 0.5                          # culling has rows and strips to cull here
     outputs = {}
-    every_row = np.tile(np.array([0, TILE], np.uint8), (len(bins[1]), 1))
+    every_row = np.tile(np.array([0, TILE] * _kernels.STRIPS, np.uint8), (len(bins[1]), 1))
     for name, extent in (("culled", bins[4]), ("whole tile", np.full_like(bins[4], 1e30))):
         img, t_final, n_proc, taken = _kernels.rasterize_fwd(m2, conics, feats, op, bins[0], bins[1], extent, width,
                                                              height, True)

@@ -1,11 +1,13 @@
 """numba kernels of the CPU rasteriser: tile binning, forward compositing, backward, per-pixel listings.
 
 Layout follows gsplat: every (tile, Gaussian) intersection sits in a per-tile, depth-sorted list. Tiles
-run in parallel (prange); inside a tile the loop is over Gaussians outside and the tile's 256 pixels
-inside, branch-free, so LLVM vectorises it. `fast=True` uses a polynomial exp (rel. error ~1e-7, float32)
+run in parallel (prange). A tile's pixels are stored in 8-pixel-wide strips, each row-major, so the rows
+of the strips a Gaussian reaches are one contiguous run; the loop over them is branch-free (0/1 masks,
+not selects) and LLVM vectorises it. `fast=True` uses a polynomial exp (rel. error ~1e-7, float32)
 because math.exp blocks vectorisation; float64 callers (gradcheck) pass fast=False for math.exp. The
-forward records the tile rows each intersection composited in; the backward walks only those, gives every
-intersection its own gradient slot and reduces them per Gaussian in a fixed order: no atomics, deterministic.
+forward records the rows of each strip an intersection composited in; the backward walks only those, gives
+every intersection its own gradient slot and reduces them per Gaussian in a fixed order: no atomics,
+deterministic.
 Keep every kernel and its helpers in this one module (numba's cache key).
 """
 
@@ -20,6 +22,9 @@ from station.ngs import conventions
 from station.ngs.conventions import TILE
 
 TILE_PIX = TILE * TILE
+STRIP = 8  # pixels across a strip: a tile's pixels are stored strip by strip, each strip row-major
+STRIPS = TILE // STRIP
+STRIP_PIX = TILE * STRIP
 # float32 constants: a float64 literal would promote float32 arithmetic to float64 (half the SIMD width);
 # with float64 inputs they promote harmlessly.
 F = np.float32
@@ -98,32 +103,45 @@ def _sig_max(opacity):
 
 
 @njit(cache=True)
-def _y_extent(a, b, c, sig_max):
-    """Half-height in pixels of the ellipse sigma <= sig_max, padded for float32 rounding of sigma in the
-    compositing loops; BIG for a conic that is not positive definite, 0 for a Gaussian never visible."""
-    det = a * c - b * b
+def _extent(a, c, det, sig_max):
+    """Half-width along one axis in pixels of the ellipse sigma <= sig_max (c: the conic's other diagonal term),
+    padded for float32 rounding of sigma in the compositing loops; BIG for a conic that is not positive
+    definite, 0 for a Gaussian never visible."""
     if sig_max < 0.0:
         return 0.0
     if a <= 0.0 or c <= 0.0 or det <= 0.0:
         return BIG
-    return math.sqrt(2.0 * sig_max * a / det) * 1.01 + 0.05
+    return math.sqrt(2.0 * sig_max * c / det) * 1.01 + 0.05
 
 
 @njit(cache=True)
-def _row_span(my, ext, y0):
-    """Tile-local pixels [p0, p1) of the rows whose centres lie within ext of my: only they can reach alpha
-    >= 1/255, so compositing skips the other rows (exactly: they would add nothing). Unsigned, because numba
-    wraps a possibly negative signed index on every access, which stops LLVM from vectorising the loops."""
-    lo = min(max(my - ext - y0 - 0.5, -1.0), TILE + 1.0)
-    hi = min(max(my + ext - y0 - 0.5, -1.0), TILE + 1.0)
-    r0 = max(int(math.ceil(lo)), 0)
-    r1 = min(int(math.floor(hi)) + 1, TILE)
-    return np.uint64(r0 * TILE), np.uint64(max(r1, r0) * TILE)
+def _span(m, ext, origin):
+    """Tile-local rows (or columns) [i0, i1) whose pixel centres lie within ext of m: only they can reach alpha
+    >= 1/255, so compositing skips the others (exactly: they would add nothing)."""
+    lo = min(max(m - ext - origin - 0.5, -1.0), TILE + 1.0)
+    hi = min(max(m + ext - origin - 0.5, -1.0), TILE + 1.0)
+    i0 = max(int(math.ceil(lo)), 0)
+    i1 = min(int(math.floor(hi)) + 1, TILE)
+    return i0, max(i1, i0)
+
+
+@njit(cache=True)
+def _strip_range(c0, c1):
+    """Strips [s0, s1) holding tile-local columns [c0, c1)."""
+    if c1 <= c0:
+        return 0, 0
+    return c0 // STRIP, (c1 + STRIP - 1) // STRIP
+
+
+@njit(cache=True)
+def _pixels(s, r0, r1):
+    """Tile-local pixels [p0, p1) of rows [r0, r1) in strip s. Unsigned, because numba wraps a possibly negative
+    signed index on every access, which stops LLVM from vectorising the loops."""
+    base = s * STRIP_PIX
+    return np.uint64(base + r0 * STRIP), np.uint64(base + max(r1, r0) * STRIP)
 
 
 U8, RADIX_MASK = np.uint64(8), np.uint64(255)
-TILE_U, ONE_U, ZERO_U = np.uint64(TILE), np.uint64(1), np.uint64(0)
-TILE_PIX_U = np.uint64(TILE_PIX)
 
 
 @njit(cache=True)
@@ -181,20 +199,22 @@ def depth_order(depths):
 @njit(parallel=True, cache=True)
 def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     """Per-tile depth-sorted intersection lists -> tile_offsets [T+1], isect_gid [M], gauss_offsets [N+1],
-    gauss_slots [M] (for Gaussian g, the list positions of its intersections, tile-major order), extent_y [N]
-    (see `_y_extent`)."""
+    gauss_slots [M] (for Gaussian g, the list positions of its intersections, tile-major order), extents [N, 2]
+    (x and y half-widths, see `_extent`)."""
     n = means2d.shape[0]
     tw = (width + TILE - 1) // TILE
     th = (height + TILE - 1) // TILE
     counts = np.zeros(n, np.int64)
-    extent_y = np.empty(n, np.float64)
+    extents = np.empty((n, 2), np.float64)
     sig = np.empty(n, np.float64)
     hits = np.zeros(n, np.uint64)  # the first pass's hits as bits of the rectangle (row-major) when it has <= 64 tiles
     rects = np.zeros((n, 4), np.int64)  # and the rectangle, x0 y0 x1 y1
     for g in prange(n):
         sig_max = _sig_max(opacities[g])
         sig[g] = sig_max
-        extent_y[g] = _y_extent(float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), sig_max)
+        ca, cb, cc = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+        extents[g, 0] = _extent(ca, cc, ca * cc - cb * cb, sig_max)
+        extents[g, 1] = _extent(cc, ca, ca * cc - cb * cb, sig_max)
         if radii[g] > 0 and sig_max >= 0.0:
             u, v = means2d[g, 0], means2d[g, 1]
             x0, y0, x1, y1 = _hit_rect(u, v, float(radii[g]), float(conics[g, 0]), float(conics[g, 1]),
@@ -244,7 +264,7 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
             isect_gid[cursor[t]] = g
             gauss_slots[j] = cursor[t]
             cursor[t] += 1
-    return tile_offsets, isect_gid, gauss_offsets, gauss_slots, extent_y
+    return tile_offsets, isect_gid, gauss_offsets, gauss_slots, extents
 
 
 @njit(fastmath=True, cache=True)
@@ -277,15 +297,15 @@ def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, p0, p1):
 
 @njit(cache=True)
 def _tile_pixels(t, tw, width, height, dtype):
-    """Pixel centres of tile t and whether each lies inside the image."""
+    """Pixel centres of tile t, strip by strip (see STRIP), and whether each lies inside the image."""
     px = np.empty(TILE_PIX, dtype)
     py = np.empty(TILE_PIX, dtype)
     inside = np.empty(TILE_PIX, np.bool_)
     x0 = (t % tw) * TILE
     y0 = (t // tw) * TILE
     for p in range(TILE_PIX):
-        x = x0 + p % TILE
-        y = y0 + p // TILE
+        x = x0 + (p // STRIP_PIX) * STRIP + p % STRIP
+        y = y0 + (p % STRIP_PIX) // STRIP
         px[p] = x + 0.5
         py[p] = y + 0.5
         inside[p] = x < width and y < height
@@ -293,26 +313,30 @@ def _tile_pixels(t, tw, width, height, dtype):
 
 
 @njit(cache=True)
-def _live_rows(live):
-    """Tile-local pixels [lo, hi) of the first to the last row holding a live pixel (lo >= hi: none). Rows
-    outside it are finished, so compositing skips them exactly."""
-    r0, r1 = TILE, 0
-    for r in range(TILE):
-        s = ZERO
-        for q in range(TILE):
-            s += live[r * TILE + q]
-        if s > ZERO:
-            r0 = min(r0, r)
-            r1 = r + 1
-    return np.uint64(r0 * TILE), np.uint64(max(r1, r0) * TILE)
+def _live_rows(live, rows):
+    """Per strip, the rows [rows[s, 0], rows[s, 1]) from the first to the last holding a live pixel (empty: none);
+    rows outside are finished, so compositing skips them exactly. Returns whether any strip is live."""
+    any_live = False
+    for s in range(STRIPS):
+        r0, r1 = TILE, 0
+        for r in range(TILE):
+            v = ZERO
+            for q in range(STRIP):
+                v += live[s * STRIP_PIX + r * STRIP + q]
+            if v > ZERO:
+                r0 = min(r0, r)
+                r1 = r + 1
+        rows[s, 0], rows[s, 1] = r0, max(r1, r0)
+        any_live |= r1 > r0
+    return any_live
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, extent_y, width, height, fast):
+def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, extents, width, height, fast):
     """Composite front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W] int32
-    (position in the tile list where the pixel stopped; the list length if it never did), taken [M, 2] uint8
-    (per intersection, the tile rows [first, last) where it composited a pixel: only there can the backward
-    find a gradient; [0, 0) for none)."""
+    (position in the tile list where the pixel stopped; the list length if it never did), taken [M, 2 * STRIPS]
+    uint8 (per intersection and strip, the rows [first, last) where it composited a pixel: only there can the
+    backward find a gradient; [0, 0) for none)."""
     dt = means2d.dtype
     d_ch = colors.shape[1]
     tw = (width + TILE - 1) // TILE
@@ -320,10 +344,11 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
     feats = np.zeros((height, width, d_ch), dt)
     t_final = np.ones((height, width), dt)
     n_proc = np.zeros((height, width), np.int32)
-    taken = np.zeros((tile_offsets[ntiles], 2), np.uint8)
+    taken = np.zeros((tile_offsets[ntiles], 2 * STRIPS), np.uint8)
     for t in prange(ntiles):
         start, end = tile_offsets[t], tile_offsets[t + 1]
         px, py, inside = _tile_pixels(t, tw, width, height, dt)
+        x0 = (t % tw) * TILE
         y0 = (t // tw) * TILE
         T = np.ones(TILE_PIX, dt)
         live = np.empty(TILE_PIX, dt)
@@ -335,37 +360,36 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
         ibuf = np.empty(TILE_PIX, np.int32)
         for p in range(TILE_PIX):
             live[p] = 1.0 if inside[p] else 0.0
-        lo, hi = np.uint64(0), np.uint64(TILE_PIX)  # the tile's rows that still hold a live pixel
+        rows = np.empty((STRIPS, 2), np.int64)  # per strip, the rows that still hold a live pixel
+        _live_rows(live, rows)
         for k in range(end - start):
             g = isect_gid[start + k]
-            p0, p1 = _row_span(means2d[g, 1], extent_y[g], y0)
-            p0, p1 = max(p0, lo), min(p1, hi)
-            _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
-                    px, py, alpha, expo, fast, ibuf, p0, p1)
-            first, last = TILE_PIX_U, ZERO_U
-            for p in range(p0, p1):
-                a = alpha[p]
-                valid = (a >= ALPHA_MIN) & (live[p] > ZERO)
-                next_t = T[p] * (ONE - a)
-                stop = valid & (next_t <= T_STOP)
-                take = valid & (next_t > T_STOP)
-                w[p] = a * T[p] if take else ZERO
-                T[p] = next_t if take else T[p]
-                live[p] = ZERO if stop else live[p]
-                stop_at[p] = k if stop else stop_at[p]
-                first = min(first, p if take else TILE_PIX_U)
-                last = max(last, p + ONE_U if take else ZERO_U)
-            if first < last:
-                taken[start + k, 0] = first // TILE_U
-                taken[start + k, 1] = (last + TILE_U - ONE_U) // TILE_U
-            for d in range(d_ch):
-                c = colors[g, d]
+            r0, r1 = _span(means2d[g, 1], extents[g, 1], y0)
+            c0, c1 = _span(means2d[g, 0], extents[g, 0], x0)
+            s0, s1 = _strip_range(c0, c1)
+            for s in range(s0, s1):
+                p0, p1 = _pixels(s, max(r0, rows[s, 0]), min(r1, rows[s, 1]))
+                if p0 >= p1:
+                    continue
+                _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
+                        px, py, alpha, expo, fast, ibuf, p0, p1)
+                k32 = np.int32(k)
                 for p in range(p0, p1):
-                    acc[d, p] += c * w[p]
-            if k % 8 == 7:
-                lo, hi = _live_rows(live)
-                if lo >= hi:
-                    break
+                    a = alpha[p]
+                    t = T[p]
+                    valid = np.float32(a >= ALPHA_MIN) * live[p]      # 0/1 masks, not branches: they vectorise
+                    take = valid * np.float32(t * (ONE - a) > T_STOP)
+                    w[p] = a * t * take
+                    T[p] = t * (ONE - a * take)
+                    live[p] -= valid - take                             # valid, not taken: the pixel stops here
+                    stop_at[p] = k32 if valid > take else stop_at[p]
+                _record_taken(w, s, p0, p1, taken[start + k])
+                for d in range(d_ch):
+                    c = colors[g, d]
+                    for p in range(p0, p1):
+                        acc[d, p] += c * w[p]
+            if k % 8 == 7 and not _live_rows(live, rows):
+                break
         for p in range(TILE_PIX):
             if inside[p]:
                 x = int(px[p])
@@ -378,7 +402,7 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid, extent_y, width, height,
+def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid, extents, width, height,
                      alpha_level, fast):
     """Per pixel, the depth of the Gaussian whose compositing takes alpha to that pixel's `alpha_level` [H, W] or
     above -> [H, W] (+inf where it never does). Same skip and stop rules as rasterize_fwd; forward only (meshing,
@@ -390,6 +414,7 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
     for t in prange(ntiles):
         start, end = tile_offsets[t], tile_offsets[t + 1]
         px, py, inside = _tile_pixels(t, tw, width, height, dt)
+        x0 = (t % tw) * TILE
         y0 = (t // tw) * TILE
         T = np.ones(TILE_PIX, dt)
         live = np.empty(TILE_PIX, dt)
@@ -402,26 +427,32 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
             live[p] = 1.0 if inside[p] else 0.0
             if inside[p]:
                 t_level[p] = ONE - alpha_level[int(py[p]), int(px[p])]
+        rows = np.empty((STRIPS, 2), np.int64)
+        _live_rows(live, rows)
         for k in range(end - start):
             g = isect_gid[start + k]
-            p0, p1 = _row_span(means2d[g, 1], extent_y[g], y0)
-            _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
-                    px, py, alpha, expo, fast, ibuf, p0, p1)
+            r0, r1 = _span(means2d[g, 1], extents[g, 1], y0)
+            c0, c1 = _span(means2d[g, 0], extents[g, 0], x0)
+            s0, s1 = _strip_range(c0, c1)
             z = depths[g]
-            for p in range(p0, p1):
-                a = alpha[p]
-                valid = (a >= ALPHA_MIN) & (live[p] > ZERO)
-                next_t = T[p] * (ONE - a)
-                take = valid & (next_t > T_STOP)
-                median[p] = z if take & (next_t <= t_level[p]) & (T[p] > t_level[p]) else median[p]
-                T[p] = next_t if take else T[p]
-                live[p] = ZERO if (valid and not take) or T[p] <= t_level[p] else live[p]
-            if k % 8 == 7:
-                s = 0.0
-                for p in range(TILE_PIX):
-                    s += live[p]
-                if s == 0.0:
-                    break
+            for s in range(s0, s1):
+                p0, p1 = _pixels(s, max(r0, rows[s, 0]), min(r1, rows[s, 1]))
+                if p0 >= p1:
+                    continue
+                _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
+                        px, py, alpha, expo, fast, ibuf, p0, p1)
+                for p in range(p0, p1):
+                    a = alpha[p]
+                    t = T[p]
+                    next_t = t * (ONE - a)
+                    valid = np.float32(a >= ALPHA_MIN) * live[p]       # 0/1 masks, as in rasterize_fwd
+                    take = valid * np.float32(next_t > T_STOP)
+                    crossed = take * np.float32(next_t <= t_level[p]) * np.float32(t > t_level[p])
+                    median[p] = z if crossed > ZERO else median[p]
+                    T[p] = t * (ONE - a * take)
+                    live[p] = ZERO if (valid > take) or T[p] <= t_level[p] else live[p]
+            if k % 8 == 7 and not _live_rows(live, rows):
+                break
         for p in range(TILE_PIX):
             if inside[p]:
                 out[int(py[p]), int(px[p])] = median[p]
@@ -429,9 +460,27 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
 
 
 @njit(cache=True)
-def _taken_span(taken, s):
-    """Tile-local pixels [p0, p1) of the rows intersection s composited in (`rasterize_fwd`); empty if none."""
-    return np.uint64(taken[s, 0]) * TILE_U, np.uint64(taken[s, 1]) * TILE_U
+def _record_taken(w, s, p0, p1, row):
+    """Note in `row` (an intersection's `taken`) the first and last rows of pixels [p0, p1) of strip s with a
+    weight: the composited ones."""
+    first, last = TILE, 0
+    base = s * STRIP_PIX
+    for r in range((int(p0) - base) // STRIP, (int(p1) - base) // STRIP):
+        total = ZERO
+        for q in range(STRIP):
+            total += w[base + r * STRIP + q]
+        if total > ZERO:
+            first = min(first, r)
+            last = r + 1
+    if first < last:
+        row[2 * s], row[2 * s + 1] = first, last
+
+
+@njit(cache=True)
+def _taken_span(taken, i, s):
+    """Tile-local pixels [p0, p1) of the rows in strip s that intersection i composited in (`rasterize_fwd`);
+    empty if none."""
+    return _pixels(s, int(taken[i, 2 * s]), int(taken[i, 2 * s + 1]))
 
 
 @njit(parallel=True, fastmath=True, cache=True)
@@ -459,7 +508,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
-        tb = np.empty(TILE_PIX, dt)
+        t_taken = np.empty(TILE_PIX, dt)
         gda = np.empty(TILE_PIX, dt)
         inv1a = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
@@ -476,56 +525,58 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                     go[d, p] = g_feats[y, x, d]
                     rest[d, p] = feats[y, x, d] + t_final[y, x] * background[d]
         for k in range(kmax):
-            s = start + k
-            p0, p1 = _taken_span(taken, s)
-            if p0 >= p1:
-                continue
-            g = isect_gid[s]
+            i = start + k
+            k32 = np.int32(k)
+            g = isect_gid[i]
             mx, my = means2d[g, 0], means2d[g, 1]
             ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
             op = opacities[g]
-            _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, p0, p1)
-            for p in range(p0, p1):
-                a = alpha[p]
-                take = (a >= ALPHA_MIN) & (k < limit[p])
-                inv = ONE / (ONE - a)
-                tb[p] = T[p]
-                w[p] = a * T[p] if take else ZERO
-                T[p] = T[p] * (ONE - a) if take else T[p]
-                gda[p] = ga[p] * tn[p] * inv if take else ZERO
-                inv1a[p] = inv if take else ZERO
-            for d in range(d_ch):
-                c = colors[g, d]
-                acc_c = ZERO
+            for s in range(STRIPS):
+                p0, p1 = _taken_span(taken, i, s)
+                if p0 >= p1:
+                    continue
+                _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, p0, p1)
                 for p in range(p0, p1):
-                    rest[d, p] -= c * w[p]
-                    gda[p] += go[d, p] * ((tb[p] * c if w[p] != ZERO else ZERO) - rest[d, p] * inv1a[p])
-                    acc_c += go[d, p] * w[p]
-                slots[s, 5 + d] = acc_c
-            g_op = ZERO
-            g_mx = ZERO
-            g_my = ZERO
-            g_a = ZERO
-            g_b = ZERO
-            g_c = ZERO
-            for p in range(p0, p1):
-                unclamped = op * expo[p] < ALPHA_MAX
-                gd = gda[p] if unclamped else ZERO
-                g_op += gd * expo[p]
-                g_sig = -gd * alpha[p]
-                dx = mx - px[p]
-                dy = my - py[p]
-                g_mx += g_sig * (ca * dx + cb * dy)
-                g_my += g_sig * (cc * dy + cb * dx)
-                g_a += g_sig * HALF * dx * dx
-                g_b += g_sig * dx * dy
-                g_c += g_sig * HALF * dy * dy
-            slots[s, 0] = g_mx
-            slots[s, 1] = g_my
-            slots[s, 2] = g_a
-            slots[s, 3] = g_b
-            slots[s, 4] = g_c
-            slots[s, 5 + d_ch] = g_op
+                    a = alpha[p]
+                    t = T[p]
+                    take = np.float32(a >= ALPHA_MIN) * np.float32(k32 < limit[p])  # a 0/1 mask: it vectorises
+                    inv = ONE / (ONE - a)
+                    t_taken[p] = t * take
+                    w[p] = a * t * take
+                    T[p] = t * (ONE - a * take)
+                    gda[p] = ga[p] * tn[p] * inv * take
+                    inv1a[p] = inv * take
+                for d in range(d_ch):
+                    c = colors[g, d]
+                    acc_c = ZERO
+                    for p in range(p0, p1):
+                        rest[d, p] -= c * w[p]
+                        gda[p] += go[d, p] * (t_taken[p] * c - rest[d, p] * inv1a[p])
+                        acc_c += go[d, p] * w[p]
+                    slots[i, 5 + d] += acc_c
+                g_op = ZERO
+                g_mx = ZERO
+                g_my = ZERO
+                g_a = ZERO
+                g_b = ZERO
+                g_c = ZERO
+                for p in range(p0, p1):
+                    gd = gda[p] * np.float32(op * expo[p] < ALPHA_MAX)  # no gradient through the clamp
+                    g_op += gd * expo[p]
+                    g_sig = -gd * alpha[p]
+                    dx = mx - px[p]
+                    dy = my - py[p]
+                    g_mx += g_sig * (ca * dx + cb * dy)
+                    g_my += g_sig * (cc * dy + cb * dx)
+                    g_a += g_sig * HALF * dx * dx
+                    g_b += g_sig * dx * dy
+                    g_c += g_sig * HALF * dy * dy
+                slots[i, 0] += g_mx
+                slots[i, 1] += g_my
+                slots[i, 2] += g_a
+                slots[i, 3] += g_b
+                slots[i, 4] += g_c
+                slots[i, 5 + d_ch] += g_op
     return slots
 
 
@@ -560,21 +611,22 @@ def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, take
             if inside[p]:
                 kmax = max(kmax, n_proc[int(py[p]), int(px[p])])
         for k in range(kmax):
-            s = start + k
-            p0, p1 = _taken_span(taken, s)
-            if p0 >= p1:
-                continue
-            g = isect_gid[s]
-            _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
-                    px, py, alpha, expo, fast, ibuf, p0, p1)
-            for p in range(p0, p1):
-                if inside[p] and alpha[p] >= ALPHA_MIN and k < n_proc[int(py[p]), int(px[p])]:
-                    pix = int(py[p]) * width + int(px[p])
-                    if fill:
-                        ids[cursor[pix]] = g
-                        cursor[pix] += 1
-                    else:
-                        counts[pix + 1] += 1
+            i = start + k
+            g = isect_gid[i]
+            for s in range(STRIPS):
+                p0, p1 = _taken_span(taken, i, s)
+                if p0 >= p1:
+                    continue
+                _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
+                        px, py, alpha, expo, fast, ibuf, p0, p1)
+                for p in range(p0, p1):
+                    if inside[p] and alpha[p] >= ALPHA_MIN and k < n_proc[int(py[p]), int(px[p])]:
+                        pix = int(py[p]) * width + int(px[p])
+                        if fill:
+                            ids[cursor[pix]] = g
+                            cursor[pix] += 1
+                        else:
+                            counts[pix + 1] += 1
 
 
 def list_contributors(means2d, conics, opacities, tile_offsets, isect_gid, taken, width, height, n_proc, fast):
