@@ -1,5 +1,5 @@
 """The CUDA path on a GPU machine: gsplat against the numba CPU rasteriser on the benchmark scene of
-docs/cpu-rasterizer.md, then a full `station demo` timed, trained on CUDA by `TrainConfig.device` "auto".
+bench/raster.py, then a full `station demo` timed, trained on CUDA by `TrainConfig.device` "auto".
 
     ./dev bench gpu                 # or: python bench/gpu.py [--skip-demo]
 
