@@ -38,13 +38,11 @@ else:
 
 
 def _sources_digest() -> str:
-    """What numba's cached kernels depend on: the code that defines or calls them (the warm-up's own calls
-    too, which pick the signatures compiled), and numba itself."""
+    """What numba's cached kernels depend on: the code that defines or calls them, and numba itself."""
     import importlib.metadata
 
     digest = hashlib.sha256(importlib.metadata.version("numba").encode())
-    sources = [*(_ROOT / "station").rglob("*.py"), *(_ROOT / "sim").rglob("*.py"), _ROOT / "tests" / "warm_kernels.py"]
-    for path in sorted(sources):
+    for path in sorted([*(_ROOT / "station").rglob("*.py"), *(_ROOT / "sim").rglob("*.py")]):
         digest.update(path.relative_to(_ROOT).as_posix().encode() + path.read_bytes())
     return digest.hexdigest()
 
