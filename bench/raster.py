@@ -297,7 +297,10 @@ def against(rev: str, rounds: int, out: Path) -> None:
                 f"{med['before', key]:>7.1f}>{med['after', key]:<7.1f} {ratio[key]:>6.2f}" for key in keys)
                 + f" {load:>5.1f}", flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"benchmark": "raster", "before": rev, "after": "working tree", "rounds": rounds, "threads": 2,
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                          text=True).stdout.strip()
+    out.write_text(json.dumps({"benchmark": "raster", "before": rev, "after": f"{head} (working tree)",
+                               "rounds": rounds, "threads": 2,
                                "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
                                "configs": rows}, indent=2) + "\n")
     print(f"wrote {out}")

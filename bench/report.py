@@ -51,6 +51,8 @@ def num(value: object, digits: int = 3) -> str:
 def kind_of(data: dict) -> str:
     if data.get("benchmark") in ("demo", "plans"):
         return data["benchmark"]
+    if data.get("benchmark") == "raster" and "before" in data:
+        return "raster_ab"
     methods = data.get("methods")
     if isinstance(methods, dict) and methods:
         first = next(iter(methods.values()))
@@ -195,6 +197,19 @@ def raster_section(name: str, data: dict) -> Section:
     return lines, {f"{name}.svg": svg}
 
 
+def raster_ab_section(name: str, data: dict) -> Section:
+    keys = (("step_ms", "step wall"), ("step_cpu_ms", "step CPU"), ("train_step_ms", "step + Adam wall"))
+    rows = [[num(c["gaussians"]), f"{c['width']}×{c['height']}"]
+            + [f"{num(c['median'][f'before_{key}'], 1)} → {num(c['median'][f'after_{key}'], 1)} "
+               f"(×{c['median'][f'after_{key}'] / c['median'][f'before_{key}']:.2f})" for key, _ in keys]
+            + [num(c["median_load_1min"], 1)] for c in data["configs"]]
+    lines = [f"One training step of `bench/raster.py`'s scene, {data['threads']} threads: revision {data['before']} "
+             f"against {data['after']}, {data['rounds']} rounds of alternating fresh processes (A B A B), so both "
+             "see the same machine; medians in ms, after / before in brackets.", ""]
+    lines += table(["Gaussians", "image"] + [label for _, label in keys] + ["1-min load"], rows)
+    return lines, {}
+
+
 def mesh_section(name: str, data: dict) -> Section:
     rows = [[method, num(m["seconds"], 1), num(m["faces"]), num(m["watertight"]),
              f"{100 * m['chamfer_fraction_of_diagonal']:.2f} %", num(m["fscore"]), f"{100 * m['volume_rel_error']:+.1f} %"]
@@ -312,6 +327,7 @@ SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
     "masks": ("Masks, one view at a time", masks_section),
     "cross_view": ("Masks cut again across rings", cross_view_section),
     "raster": ("Rasteriser speed", raster_section),
+    "raster_ab": ("Rasteriser speed", raster_ab_section),
     "ngs": ("NGS against its baselines", ngs_section),
     "plans": ("How many steps the plan needs", plans_section),
     "real": ("NGS on real photos", ngs_section),
@@ -321,7 +337,7 @@ SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
     "batch_nodes": ("Batch throughput", batch_nodes_section),
     "other": ("Other results", other_section),
 }
-SCRIPTS = {"cross_view": "cross_view", "fidelity": "process", "batch_nodes": "batch"}
+SCRIPTS = {"cross_view": "cross_view", "fidelity": "process", "batch_nodes": "batch", "raster_ab": "raster"}
 
 
 def load(path: Path) -> dict:
