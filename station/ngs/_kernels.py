@@ -126,11 +126,13 @@ def _span(m, ext, origin):
 
 
 @njit(cache=True)
-def _strip_range(c0, c1):
-    """Strips [s0, s1) holding tile-local columns [c0, c1)."""
+def _reach(means2d, extents, g, x0, y0):
+    """Tile-local rows [r0, r1) and strips [s0, s1) of the tile at pixel (x0, y0) that Gaussian g can reach."""
+    r0, r1 = _span(means2d[g, 1], extents[g, 1], y0)
+    c0, c1 = _span(means2d[g, 0], extents[g, 0], x0)
     if c1 <= c0:
-        return 0, 0
-    return c0 // STRIP, (c1 + STRIP - 1) // STRIP
+        return r0, r1, 0, 0
+    return r0, r1, c0 // STRIP, (c1 + STRIP - 1) // STRIP
 
 
 @njit(cache=True)
@@ -331,6 +333,17 @@ def _live_rows(live, rows):
     return any_live
 
 
+@njit(cache=True)
+def _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast, ibuf):
+    """Alphas of Gaussian g over its rows [r0, r1) of strip s that still hold a live pixel (`_live_rows`) ->
+    those pixels [p0, p1), empty if none."""
+    p0, p1 = _pixels(s, max(r0, rows[s, 0]), min(r1, rows[s, 1]))
+    if p0 < p1:
+        _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g], px, py, alpha,
+                expo, fast, ibuf, p0, p1)
+    return p0, p1
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, extents, width, height, fast):
     """Composite front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W] int32
@@ -364,15 +377,11 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
         _live_rows(live, rows)
         for k in range(end - start):
             g = isect_gid[start + k]
-            r0, r1 = _span(means2d[g, 1], extents[g, 1], y0)
-            c0, c1 = _span(means2d[g, 0], extents[g, 0], x0)
-            s0, s1 = _strip_range(c0, c1)
+            r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
             for s in range(s0, s1):
-                p0, p1 = _pixels(s, max(r0, rows[s, 0]), min(r1, rows[s, 1]))
+                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast, ibuf)
                 if p0 >= p1:
                     continue
-                _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
-                        px, py, alpha, expo, fast, ibuf, p0, p1)
                 k32 = np.int32(k)
                 for p in range(p0, p1):
                     a = alpha[p]
@@ -431,16 +440,12 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
         _live_rows(live, rows)
         for k in range(end - start):
             g = isect_gid[start + k]
-            r0, r1 = _span(means2d[g, 1], extents[g, 1], y0)
-            c0, c1 = _span(means2d[g, 0], extents[g, 0], x0)
-            s0, s1 = _strip_range(c0, c1)
+            r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
             z = depths[g]
             for s in range(s0, s1):
-                p0, p1 = _pixels(s, max(r0, rows[s, 0]), min(r1, rows[s, 1]))
+                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast, ibuf)
                 if p0 >= p1:
                     continue
-                _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
-                        px, py, alpha, expo, fast, ibuf, p0, p1)
                 for p in range(p0, p1):
                     a = alpha[p]
                     t = T[p]
