@@ -378,11 +378,11 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
         for k in range(end - start):
             g = isect_gid[start + k]
             r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
+            k32 = np.int32(k)
             for s in range(s0, s1):
                 p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast, ibuf)
                 if p0 >= p1:
                     continue
-                k32 = np.int32(k)
                 for p in range(p0, p1):
                     a = alpha[p]
                     t = T[p]
