@@ -110,11 +110,11 @@ def run(
     Exit 0 when every scan passed, 1 when any was quarantined by the gate or parked."""
     from station.batch.runner import BatchSettings, run_batch, with_budgets
     from station.batch.summary import build_summary, print_summary, write_summary_html
-    from station.ngs.presets import make_config
+    from station.ngs.preset_names import check_names
 
     if executor not in ("local", "ray"):
         raise BadInputError(f"--executor {executor!r}: expected local or ray")
-    make_config(method, preset)  # an unknown method or preset is refused before any work
+    check_names(method, preset)  # an unknown method or preset is refused before any work
     budgets = with_budgets(_stage_values(time_budget or [], "--time-budget"),
                            _stage_values(disk_budget or [], "--disk-budget"))
     settings = BatchSettings(method=method, preset=preset, training_width=training_width, workers=workers,

@@ -7,6 +7,8 @@ themselves are tested in test_batch_chaos.py and test_batch_faults.py.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -97,7 +99,7 @@ def test_commands_on_a_missing_queue_or_an_unknown_scan_are_usage_errors(queue, 
 
 
 @pytest.mark.parametrize("bad", [["--time-budget", "polish=10"], ["--disk-budget", "train=lots"],
-                                 ["--preset", "huge"], ["--executor", "slurm"]])
+                                 ["--preset", "huge"], ["--method", "nerf"], ["--executor", "slurm"]])
 def test_bad_run_options_are_refused_before_any_work(queue, bad):
     result = invoke("run", *bad, "--queue", queue)
     assert result.exit_code == 2
@@ -123,6 +125,17 @@ def test_running_an_empty_queue_writes_the_summary_and_exits_0(tmp_path):
     assert result.exit_code == 0
     assert Path(json.loads(result.stdout)["summary_html"]) == tmp_path / "q-summary.html"
     assert (tmp_path / "q-summary.html").is_file()
+
+
+def test_a_runner_starts_without_importing_torch_which_only_its_stage_processes_need(tmp_path):
+    """A runner restarted after a crash paid some 5 s of imports it never used before it could claim a scan."""
+    started = subprocess.run([sys.executable, "-X", "importtime", "-m", "station.cli_batch", "run",
+                              "--preset", "tiny", "--queue", str(tmp_path / "q.sqlite")],
+                             capture_output=True, text=True, timeout=120)
+    assert started.returncode == 0, started.stderr[-2000:]
+    imported = {line.rsplit("|", 1)[-1].strip() for line in started.stderr.splitlines() if line.startswith("import time:")}
+    assert "station.batch.runner" in imported
+    assert not imported & {"torch", "numba", "cv2", "scipy"}
 
 
 def test_the_summary_tells_a_lost_node_from_a_failed_training_and_says_where_each_attempt_ran(tmp_path):

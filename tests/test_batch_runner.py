@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 import threading
 import time
 from dataclasses import replace
@@ -19,7 +21,8 @@ from station.batch.executors import LocalExecutor
 from station.batch.runner import DEFAULT_BUDGETS, BatchSettings, StageBudget, run_batch, run_job
 from station.batch.stages import STAGES, read_record, scan_stage_key
 from station.batch.store import Job, JobStore, StoreConfig
-from station.ngs.presets import make_config, safer_preset
+from station.ngs.preset_names import METHODS, PRESET_NAMES, safer_preset
+from station.ngs.presets import PRESETS, make_config
 from station.process.images_io import read_png16
 from station.scanfolder import ScanFolder
 
@@ -92,6 +95,24 @@ def test_the_safer_preset_halves_step_sizes_gaussian_budget_and_resolution():
     assert (safe.lr_means, safe.lr_opacities) == (base.lr_means / 2, base.lr_opacities / 2)
     assert (safe.densify.max_gaussians, safe.downscale) == (base.densify.max_gaussians // 2, base.downscale * 2)
     assert (safe.steps, safe.ngs) == (base.steps, base.ngs)
+
+
+def test_the_preset_names_the_runner_checks_without_torch_are_the_presets_there_are():
+    assert tuple(PRESETS) == PRESET_NAMES
+    for method in METHODS:
+        for preset in PRESET_NAMES:
+            assert make_config(method, safer_preset(preset)).method == method
+
+
+def test_a_stage_process_finds_what_training_imports_to_build_its_optimizers_already_in_its_forkserver():
+    """torch.optim imports torch._dynamo on building an optimizer: 2-3 s that each training stage paid."""
+    code = ("import sys, torch; from station.batch.executors import PRELOAD; "
+            "[__import__(m) for m in PRELOAD if m.startswith('torch')]; "  # the station modules there only add to it
+            "before = set(sys.modules); torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], fused=True); "
+            "print(sorted(set(sys.modules) - before))")
+    built = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert built.returncode == 0, built.stderr[-2000:]
+    assert built.stdout.strip() == "[]"
 
 
 def test_the_training_width_reaches_the_process_stage_as_a_parameter_of_its_run(queued):

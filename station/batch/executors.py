@@ -29,7 +29,10 @@ from typing import Protocol
 from station.batch.stage_run import Outcome, StageCall, execute_stage
 from station.batch.store import JobStore, StoreConfig
 
-PRELOAD = ["station.batch.stage_run", "station.process.stage", "station.ngs.pipeline", "station.export.stage"]
+# torch._dynamo too: torch.optim imports it when a training stage builds its first optimizer, 2-3 s
+# that every training stage paid again
+PRELOAD = ["station.batch.stage_run", "station.process.stage", "station.ngs.pipeline", "station.export.stage",
+           "torch._dynamo"]
 ORPHANED_EXIT = 75  # exit status of a stage process whose runner died
 FENCED_EXIT = 76  # exit status of a stage process that stopped itself: its runner's lease was lost or ran low
 POLL_SECONDS = 0.2

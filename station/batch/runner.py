@@ -53,7 +53,7 @@ from station.batch.stages import (
 )
 from station.batch.store import Job, JobStore
 from station.errors import DiskFullError
-from station.ngs.presets import safer_preset
+from station.ngs.preset_names import safer_preset
 from station.scanfolder import ScanFolder, require_free_space
 
 log = logging.getLogger("station.batch")

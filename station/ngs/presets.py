@@ -10,17 +10,15 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from station.errors import BadInputError
 from station.ngs.conventions import ALPHA_MIN
 from station.ngs.infill import InfillConfig
 from station.ngs.losses import LossConfig
 from station.ngs.ngs_schedule import NGSConfig
+from station.ngs.preset_names import SAFER_SUFFIX, check_names
 from station.ngs.resolution import ResolutionConfig
 from station.ngs.stopping import ExtendConfig
 from station.ngs.strategy import DensifyConfig
 from station.ngs.trainer import TrainConfig
-
-METHODS = ("3dgs", "alpha", "ngs")
 
 
 def paper_preset() -> TrainConfig:
@@ -65,8 +63,7 @@ def tiny_preset() -> TrainConfig:
     )
 
 
-PRESETS = {"paper": paper_preset, "fast": fast_preset, "tiny": tiny_preset}
-SAFER_SUFFIX = "-safe"  # "fast-safe": the retry of a "fast" run that diverged or ran out of memory
+PRESETS = {"paper": paper_preset, "fast": fast_preset, "tiny": tiny_preset}  # by name: preset_names.PRESET_NAMES
 
 
 def safer(cfg: TrainConfig) -> TrainConfig:
@@ -85,18 +82,9 @@ def safer(cfg: TrainConfig) -> TrainConfig:
     )
 
 
-def safer_preset(preset: str) -> str:
-    """The preset to retry `preset` with; a safer preset is its own retry."""
-    return preset if preset.endswith(SAFER_SUFFIX) else preset + SAFER_SUFFIX
-
-
 def make_config(method: str, preset: str) -> TrainConfig:
-    if method not in METHODS:
-        raise BadInputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    base = preset.removesuffix(SAFER_SUFFIX)
-    if base not in PRESETS:
-        raise BadInputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)} (or NAME{SAFER_SUFFIX})")
-    cfg = PRESETS[base]()
+    check_names(method, preset)
+    cfg = PRESETS[preset.removesuffix(SAFER_SUFFIX)]()
     if preset.endswith(SAFER_SUFFIX):
         cfg = safer(cfg)
     if method == "3dgs":
