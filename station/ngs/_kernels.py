@@ -8,6 +8,8 @@ because math.exp blocks vectorisation; float64 callers (gradcheck) pass fast=Fal
 forward records the rows of each strip an intersection composited in; the backward walks only those, gives
 every intersection its own gradient slot and reduces them per Gaussian in a fixed order: no atomics,
 deterministic.
+Helpers that take arrays run without NRT (`_nrt=False`; none allocates): with it, every array argument of a
+call in the per-intersection loops costs an atomic reference-count pair.
 Keep every kernel and its helpers in this one module (numba's cache key).
 """
 
@@ -125,7 +127,7 @@ def _span(m, ext, origin):
     return i0, max(i1, i0)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _reach(means2d, extents, g, x0, y0):
     """Tile-local rows [r0, r1) and strips [s0, s1) of the tile at pixel (x0, y0) that Gaussian g can reach."""
     r0, r1 = _span(means2d[g, 1], extents[g, 1], y0)
@@ -269,11 +271,11 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     return tile_offsets, isect_gid, gauss_offsets, gauss_slots, extents
 
 
-@njit(fastmath=True, cache=True)
-def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, p0, p1):
-    """Alpha and exp(-sigma) of one Gaussian over a tile's pixels [p0, p1); sigma < 0 gives alpha 0."""
+@njit(fastmath=True, cache=True, _nrt=False)
+def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, fbuf, p0, p1):
+    """Alpha and exp(-sigma) of one Gaussian over a tile's pixels [p0, p1); sigma < 0 gives alpha 0. `fbuf` is
+    `ibuf` viewed as float32, made once per tile by the caller: a view made here would allocate on every call."""
     if fast:
-        fbuf = ibuf.view(np.float32)
         for p in range(p0, p1):
             dx = mx - px[p]
             dy = my - py[p]
@@ -314,7 +316,7 @@ def _tile_pixels(t, tw, width, height, dtype):
     return px, py, inside
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _live_rows(live, rows):
     """Per strip, the rows [rows[s, 0], rows[s, 1]) from the first to the last holding a live pixel (empty: none);
     rows outside are finished, so compositing skips them exactly. Returns whether any strip is live."""
@@ -333,14 +335,14 @@ def _live_rows(live, rows):
     return any_live
 
 
-@njit(cache=True)
-def _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast, ibuf):
+@njit(cache=True, _nrt=False)
+def _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast, ibuf, fbuf):
     """Alphas of Gaussian g over its rows [r0, r1) of strip s that still hold a live pixel (`_live_rows`) ->
     those pixels [p0, p1), empty if none."""
     p0, p1 = _pixels(s, max(r0, rows[s, 0]), min(r1, rows[s, 1]))
     if p0 < p1:
         _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g], px, py, alpha,
-                expo, fast, ibuf, p0, p1)
+                expo, fast, ibuf, fbuf, p0, p1)
     return p0, p1
 
 
@@ -371,6 +373,7 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
+        fbuf = ibuf.view(np.float32)
         for p in range(TILE_PIX):
             live[p] = 1.0 if inside[p] else 0.0
         rows = np.empty((STRIPS, 2), np.int64)  # per strip, the rows that still hold a live pixel
@@ -380,7 +383,8 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
             r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
             k32 = np.int32(k)
             for s in range(s0, s1):
-                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast, ibuf)
+                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast,
+                                      ibuf, fbuf)
                 if p0 >= p1:
                     continue
                 for p in range(p0, p1):
@@ -431,6 +435,7 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
+        fbuf = ibuf.view(np.float32)
         t_level = np.ones(TILE_PIX, dt)
         for p in range(TILE_PIX):
             live[p] = 1.0 if inside[p] else 0.0
@@ -443,7 +448,8 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
             r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
             z = depths[g]
             for s in range(s0, s1):
-                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast, ibuf)
+                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast,
+                                      ibuf, fbuf)
                 if p0 >= p1:
                     continue
                 for p in range(p0, p1):
@@ -464,7 +470,7 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _record_taken(w, s, p0, p1, row):
     """Note in `row` (an intersection's `taken`) the first and last rows of pixels [p0, p1) of strip s with a
     weight: the composited ones."""
@@ -481,7 +487,7 @@ def _record_taken(w, s, p0, p1, row):
         row[2 * s], row[2 * s + 1] = first, last
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _taken_span(taken, i, s):
     """Tile-local pixels [p0, p1) of the rows in strip s that intersection i composited in (`rasterize_fwd`);
     empty if none."""
@@ -517,6 +523,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         gda = np.empty(TILE_PIX, dt)
         inv1a = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
+        fbuf = ibuf.view(np.float32)
         kmax = 0
         for p in range(TILE_PIX):
             if inside[p]:
@@ -540,7 +547,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 p0, p1 = _taken_span(taken, i, s)
                 if p0 >= p1:
                     continue
-                _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, p0, p1)
+                _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, fbuf, p0, p1)
                 for p in range(p0, p1):
                     a = alpha[p]
                     t = T[p]
@@ -611,6 +618,7 @@ def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, take
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         ibuf = np.empty(TILE_PIX, np.int32)
+        fbuf = ibuf.view(np.float32)
         kmax = 0
         for p in range(TILE_PIX):
             if inside[p]:
@@ -623,7 +631,7 @@ def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, take
                 if p0 >= p1:
                     continue
                 _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
-                        px, py, alpha, expo, fast, ibuf, p0, p1)
+                        px, py, alpha, expo, fast, ibuf, fbuf, p0, p1)
                 for p in range(p0, p1):
                     if inside[p] and alpha[p] >= ALPHA_MIN and k < n_proc[int(py[p]), int(px[p])]:
                         pix = int(py[p]) * width + int(px[p])
