@@ -23,7 +23,7 @@ _NO_PARENT, _TERMINAL, _ORPHAN = -1, -2, -3
 _FAR = 1 << 60
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)  # no reference counting of its four arrays on each of its many calls
 def _root_distance(node, parent, head, stamp, distance, now):
     """Steps from `node` up its tree to the terminal, or _FAR if the path meets an orphan; marks the path."""
     steps = 0
