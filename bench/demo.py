@@ -24,6 +24,8 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
+from revisions import unpack, working_tree
+
 ROOT = Path(__file__).resolve().parents[1]
 STAGE_LINE = re.compile(r"^(scan|process|train|export): (\d+) s(?: \((.*)\))?$")
 STEP = re.compile(r"([a-z ]+?) (\d+) s")
@@ -84,18 +86,14 @@ def main() -> None:
         if args.against:
             old = Path(tmp) / "before-tree"
             old.mkdir()
-            archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.against], capture_output=True,
-                                     check=True).stdout
-            subprocess.run(["tar", "-x", "-C", str(old)], input=archive, check=True)
+            unpack(args.against, old)
             runs["before"] = run_demo(old, Path(tmp) / "before", Path(tmp) / "before-cache") | {
                 "revision": args.against, "numba_cache": "empty"}
-        head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True).stdout.strip()
         cache = Path(tmp) / "after-cache"
-        runs["after"] = run_demo(ROOT, Path(tmp) / "after", cache) | {"revision": f"{head} (working tree)",
+        runs["after"] = run_demo(ROOT, Path(tmp) / "after", cache) | {"revision": working_tree(),
                                                                        "numba_cache": "empty"}
         runs["after, warm"] = run_demo(ROOT, Path(tmp) / "after-warm", cache) | {
-            "revision": f"{head} (working tree)", "numba_cache": "kept from the run before"}
+            "revision": working_tree(), "numba_cache": "kept from the run before"}
     result = {"benchmark": "demo", "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
                                                "python": sys.version.split()[0]},
               "note": "before and after start with an empty numba cache, so both include their kernels' compile "

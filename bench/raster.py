@@ -40,6 +40,8 @@ from station.ngs.conventions import rgb_to_sh  # noqa: E402
 from station.ngs.raster import _validate, rasterization, set_num_threads  # noqa: E402
 from station.ngs.raster_reference import camera_centres  # noqa: E402
 
+from revisions import unpack, working_tree  # noqa: E402
+
 REFERENCE_LIMIT = 2_000 * 128 * 128  # Gaussians x pixels beyond which the dense reference is skipped
 
 
@@ -260,8 +262,7 @@ def against(rev: str, rounds: int, out: Path) -> None:
     machine load; quotes per-config medians and their ratio. Each tree's first process (numba compile) is
     not counted."""
     with tempfile.TemporaryDirectory(prefix="raster-ab-") as old:
-        archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True).stdout
-        subprocess.run(["tar", "-x", "-C", old], input=archive, check=True)
+        unpack(rev, Path(old))
         trees = {"before": old, "after": str(ROOT)}
 
         def run(tree: str, n: int, size: int, repeats: int) -> dict:
@@ -297,9 +298,7 @@ def against(rev: str, rounds: int, out: Path) -> None:
                 f"{med['before', key]:>7.1f}>{med['after', key]:<7.1f} {ratio[key]:>6.2f}" for key in keys)
                 + f" {load:>5.1f}", flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
-    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
-                          text=True).stdout.strip()
-    out.write_text(json.dumps({"benchmark": "raster", "before": rev, "after": f"{head} (working tree)",
+    out.write_text(json.dumps({"benchmark": "raster", "before": rev, "after": working_tree(),
                                "rounds": rounds, "threads": 2,
                                "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
                                "configs": rows}, indent=2) + "\n")

@@ -1,0 +1,21 @@
+"""The two trees of a bench's `--against REV`: revision REV unpacked beside the run, and this one's label."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def unpack(rev: str, dest: Path) -> None:
+    """Revision `rev`'s files (git archive, so no checkout or worktree is touched) into the folder `dest`."""
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+
+
+def working_tree() -> str:
+    """This tree's label in a result: its commit, and that uncommitted edits may be in it."""
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                          text=True).stdout.strip()
+    return f"{head} (working tree)"
