@@ -8,7 +8,7 @@ during training, so each file holds speed against error. One results file per da
 shape, plus a curve SVG.
 
     python bench/real.py [--datasets dtu_scan65,temple] [--downscale 2] [--preset fast] [--methods 3dgs,alpha,ngs]
-                         [--variants paced,paper-prune] [--work DIR]
+                         [--variants paced,paper-prune] [--budget N] [--work DIR]
 
 With --work the imports and runs are kept there, and a run that already finished (or was killed: it resumes
 from its checkpoint) is not trained again, so methods can train in separate processes and be scored together.
@@ -36,6 +36,7 @@ from ngs import curve_svg, score, train_one
 from station.ngs.conventions import ALPHA_MIN
 from station.ngs.infill import Infill
 from station.ngs.presets import make_config
+from station.ngs.trainer import TrainConfig
 from station.process.importers import ImportSettings, import_dataset
 from station.scanfolder import atomic_write_bytes, atomic_write_json
 
@@ -87,11 +88,16 @@ def scoring_infill(run: Path, ngs_run: Path) -> Infill:
                                              weights_only=True))
 
 
+def configure(method: str, preset: str, seed: int, downscale: int, budget: int | None) -> TrainConfig:
+    cfg = replace(make_config(method, preset), seed=seed, downscale=downscale)
+    return cfg if budget is None else replace(cfg, densify=replace(cfg.densify, max_gaussians=budget))
+
+
 def run_dataset(name: str, dataset: RealDataset, methods: list[str], variants: list[str], preset: str,
-                downscale: int, seed: int, work: Path) -> dict | None:
+                downscale: int, seed: int, work: Path, budget: int | None = None) -> dict | None:
     source = import_real(name, dataset, work)
-    runs = {method: replace(make_config(method, preset), seed=seed, downscale=downscale) for method in methods}
-    base = replace(make_config("ngs", preset), seed=seed, downscale=downscale)
+    runs = {method: configure(method, preset, seed, downscale, budget) for method in methods}
+    base = configure("ngs", preset, seed, downscale, budget)
     runs.update({f"ngs, {variant}": VARIANTS[variant](base) for variant in variants})
     trained = {}
     for label, cfg in runs.items():
@@ -111,7 +117,8 @@ def run_dataset(name: str, dataset: RealDataset, methods: list[str], variants: l
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
                     "load_average": list(os.getloadavg())},
         "threads": torch.get_num_threads(),
-        "scan": f"{dataset.note}; trained at 1/{downscale} of the source size",
+        "scan": f"{dataset.note}; trained at 1/{downscale} of the source size"
+                + ("" if budget is None else f", at most {budget:,} Gaussians"),
         "presets": [preset],
         "seed": seed,
         "peer": (f"{' and '.join(peers)}, same preset, same views, same run, scored with the NGS run's infill; "
@@ -147,6 +154,7 @@ def main() -> None:
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--downscale", type=int, default=2, help="train at 1/N of the source size (DTU: 400x300)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--budget", type=int, help="cap every run's Gaussians at N (default: the preset's cap)")
     parser.add_argument("--out-dir", type=Path, default=RESULTS)
     args = parser.parse_args()
     names = args.datasets.split(",")
@@ -162,7 +170,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
             result = run_dataset(name, DATASETS[name], [m for m in args.methods.split(",") if m], variants, args.preset,
-                                 args.downscale, args.seed, args.work or Path(tmp))
+                                 args.downscale, args.seed, args.work or Path(tmp), args.budget)
             if result is None:
                 continue
             out = args.out_dir / f"real_{name}.json"
