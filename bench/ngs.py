@@ -27,8 +27,10 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import textwrap
 import time
 from dataclasses import asdict, replace
+from html import escape
 from pathlib import Path
 
 import torch
@@ -138,10 +140,13 @@ def curve_svg(rows: dict[str, dict], title: str) -> str:
     if not seconds:
         return ""
     t_max = max(seconds) or 1.0
-    return (f'<svg xmlns="http://www.w3.org/2000/svg" width="640" height="620" font-family="sans-serif" font-size="11">'
-            f'<rect width="100%" height="100%" fill="white"/><text x="60" y="16">{title}</text>'
-            f'{curve_panel(rows, "psnr", "held-out PSNR dB", 10, t_max)}'
-            f'{curve_panel(rows, "sos", "held-out SOS", 320, t_max)}</svg>\n')
+    lines = textwrap.wrap(title, 100)  # a long scan description ran past the right edge, cut off
+    below = 14 * (len(lines) - 1)
+    heading = "".join(f'<text x="60" y="{16 + 14 * i}">{escape(line)}</text>' for i, line in enumerate(lines))
+    return (f'<svg xmlns="http://www.w3.org/2000/svg" width="640" height="{620 + below}" font-family="sans-serif" '
+            f'font-size="11"><rect width="100%" height="100%" fill="white"/>{heading}'
+            f'{curve_panel(rows, "psnr", "held-out PSNR dB", 10 + below, t_max)}'
+            f'{curve_panel(rows, "sos", "held-out SOS", 320 + below, t_max)}</svg>\n')
 
 
 def main() -> None:

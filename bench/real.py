@@ -173,7 +173,8 @@ def main() -> None:
                                  args.downscale, args.seed, args.work or Path(tmp), args.budget)
             if result is None:
                 continue
-            out = args.out_dir / f"real_{name}.json"
+            suffix = "" if args.budget is None else f"_budget{args.budget}"  # a capped run keeps the default's file
+            out = args.out_dir / f"real_{name}{suffix}.json"
             atomic_write_json(out, result)
             svg = curve_svg(result["methods"], f"held-out PSNR and SOS against time, {result['scan']}")
             atomic_write_bytes(out.with_suffix(".svg"), svg.encode())
