@@ -89,11 +89,10 @@ def main() -> None:
             unpack(args.against, old)
             runs["before"] = run_demo(old, Path(tmp) / "before", Path(tmp) / "before-cache") | {
                 "revision": args.against, "numba_cache": "empty"}
-        cache = Path(tmp) / "after-cache"
-        runs["after"] = run_demo(ROOT, Path(tmp) / "after", cache) | {"revision": working_tree(),
-                                                                       "numba_cache": "empty"}
+        cache, revision = Path(tmp) / "after-cache", working_tree()
+        runs["after"] = run_demo(ROOT, Path(tmp) / "after", cache) | {"revision": revision, "numba_cache": "empty"}
         runs["after, warm"] = run_demo(ROOT, Path(tmp) / "after-warm", cache) | {
-            "revision": working_tree(), "numba_cache": "kept from the run before"}
+            "revision": revision, "numba_cache": "kept from the run before"}
     result = {"benchmark": "demo", "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
                                                "python": sys.version.split()[0]},
               "note": "before and after start with an empty numba cache, so both include their kernels' compile "
