@@ -120,7 +120,7 @@ def chaos_run(shot, tmp_path_factory) -> dict:
                       "finished_stages": _finished_stages(JobStore(queue)),
                       "in_flight": _in_flight(JobStore(queue), runner.pid),
                       # the group holds the runner's forkserver too, which sees its runner gone only once its
-                      # preload (torch, numba) is imported: on a loaded machine that alone took over 15 s
+                      # preload (torch, numba) is imported: that import alone can outlast 15 s
                       "orphans_stopped": _group_gone(runner.pid, 60.0)})
     final = _start_runner(queue, root / "runner.log")
     final.wait(timeout=500)
