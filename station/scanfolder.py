@@ -15,6 +15,7 @@ import os
 import shutil
 import tempfile
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Iterable, Literal
 
@@ -138,6 +139,11 @@ class ManifestEntry:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> str:
+        return self._line
+
+    @cached_property
+    def _line(self) -> str:
+        """Serialised once: a scan rewrites its whole manifest after every frame."""
         return json.dumps(asdict(self), sort_keys=True)
 
 

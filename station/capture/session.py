@@ -166,6 +166,7 @@ class ScanSession:
         self.config = config or SessionConfig()
         self.progress = progress or (lambda done, total, what: None)
         self.control = control or ScanControl()
+        self._plan_order = {frame.file: i for i, frame in enumerate(plan.frames())}  # the manifest's line order
 
     # ------------------------------------------------------------------------------------
     def run(self) -> ScanSummary:
@@ -275,7 +276,7 @@ class ScanSession:
             extra={"elevation_index": frame.elevation_index}
             | ({} if self.turntable.position_exact else {"pose_exact": False}),
         )
-        order = {f.file: i for i, f in enumerate(self.plan.frames())}
+        order = self._plan_order
         self.scan.write_manifest(sorted(entries.values(), key=lambda e: order.get(e.file, len(order))))
 
     # ------------------------------------------------------------------------------------
