@@ -163,18 +163,32 @@ def plate_matched(shot: np.ndarray, plate: np.ndarray, settings: MaskSettings) -
     return plate * gain.astype(np.float32)
 
 
-def _noise_sigma(values: np.ndarray, level: np.ndarray, border: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel noise sigma and border offset of a relative cue (values [H, W, C], plate level [H, W, C]).
+@dataclass(frozen=True)
+class RelativeNoise:
+    """The noise of a relative cue (a ratio or difference against the plate), measured on the border strip,
+    where there is only backdrop. Photon noise makes a relative cue's spread scale as 1/sqrt(signal), so the
+    border's spread and offset hold at any plate level; `at` gives them for just the pixels a step reads."""
 
-    Photon noise makes a relative cue's spread scale as 1/sqrt(signal); the scale is measured
-    on the border strip, where there is only backdrop.
-    """
-    reference = column_medians(level[border])  # [C]
-    signal = np.sqrt(np.maximum(level / reference, 1e-3))  # [H, W, C]
-    scaled = values[border] * signal[border]  # [B, C]
-    centre = column_medians(scaled)
-    spread = 1.4826 * column_medians(np.abs(scaled - centre)) + 1e-6
-    return spread / signal, centre / signal
+    reference: np.ndarray  # [C] the border's median plate level
+    spread: np.ndarray  # [C] the cue's sigma at that level
+    centre: np.ndarray  # [C] the cue's offset at that level
+
+    @staticmethod
+    def measure(values: np.ndarray, level: np.ndarray) -> "RelativeNoise":
+        """From the cue `values` [B, C] and the plate's `level` [B, C] on the border strip's pixels."""
+        reference = column_medians(level)
+        scaled = values * _signal(level, reference)  # [B, C]
+        centre = column_medians(scaled)
+        return RelativeNoise(reference, 1.4826 * column_medians(np.abs(scaled - centre)) + 1e-6, centre)
+
+    def at(self, level: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sigma and offset [..., C] of the cue where the plate's level is `level` [..., C]."""
+        signal = _signal(level, self.reference)
+        return self.spread / signal, self.centre / signal
+
+
+def _signal(level: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.maximum(level / reference, 1e-3))
 
 
 def difference_mask(shot: np.ndarray, plate: np.ndarray, settings: MaskSettings) -> np.ndarray:
@@ -191,7 +205,7 @@ def difference_mask(shot: np.ndarray, plate: np.ndarray, settings: MaskSettings)
     chroma = np.linalg.norm(smooth_s / ls[..., None] - smooth_p / lp[..., None], axis=2)  # [H, W]
 
     def zscore(values: np.ndarray) -> np.ndarray:
-        sigma, centre = _noise_sigma(values[..., None], lp[..., None], border)
+        sigma, centre = RelativeNoise.measure(values[border][:, None], lp[border][:, None]).at(lp[..., None])
         return ((values[..., None] - centre) / sigma)[..., 0]
 
     n = settings.noise_sigmas
@@ -260,17 +274,32 @@ def shadow_field(log_ratio: np.ndarray, background: np.ndarray, sigma_px: float)
     def moment(image: np.ndarray, order_x: int, order_y: int) -> np.ndarray:
         return cv2.sepFilter2D(image, cv2.CV_64F, kernels[order_x], kernels[order_y], borderType=cv2.BORDER_CONSTANT)
 
-    m00, m10, m01 = moment(weight, 0, 0), moment(weight, 1, 0), moment(weight, 0, 1)
-    ridge = 1e-2 * sigma_px**2 * m00  # keeps the slope tame where background lies along a line
-    m20, m11, m02 = moment(weight, 2, 0) + ridge, moment(weight, 1, 1), moment(weight, 0, 2) + ridge
-    v0, v1, v2 = moment(value, 0, 0), moment(value, 1, 0), moment(value, 0, 1)
-    # the plane's value at the pixel: the first unknown of the symmetric 3x3 normal equations, by Cramer's rule
-    minor = m20 * m02 - m11 * m11
-    det = m00 * minor - m10 * (m10 * m02 - m11 * m01) + m01 * (m10 * m11 - m20 * m01)
-    numerator = v0 * minor - m10 * (v1 * m02 - m11 * v2) + m01 * (v1 * m11 - m20 * v2)
-    near = m00 > 1e-3
-    level = numerator / np.where(near, det, 1.0)
-    return np.minimum(np.where(near, level, 0.0), 0.0).astype(np.float32)
+    weights = [moment(weight, *orders) for orders in ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))]
+    values = [moment(value, *orders) for orders in ((0, 0), (1, 0), (0, 1))]
+    return _plane_level(*weights, *values, 1e-2 * sigma_px**2)
+
+
+@njit(cache=True)
+def _plane_level(m00, m10, m01, m20, m11, m02, v0, v1, v2, ridge_per_weight):
+    """Each pixel's local plane, from its weighted moments [H, W], at the pixel itself, clipped at 0 (float32).
+
+    One pass in place of numpy's thirty over the crop."""
+    level = np.zeros(m00.shape, np.float32)
+    for y in range(m00.shape[0]):
+        for x in range(m00.shape[1]):
+            a00 = m00[y, x]
+            if not a00 > 1e-3:
+                continue  # no background near: no shadow
+            ridge = ridge_per_weight * a00  # keeps the slope tame where background lies along a line
+            a10, a01, a11 = m10[y, x], m01[y, x], m11[y, x]
+            a20, a02 = m20[y, x] + ridge, m02[y, x] + ridge
+            b0, b1, b2 = v0[y, x], v1[y, x], v2[y, x]
+            # the first unknown of the symmetric 3x3 normal equations, by Cramer's rule
+            minor = a20 * a02 - a11 * a11
+            det = a00 * minor - a10 * (a10 * a02 - a11 * a01) + a01 * (a10 * a11 - a20 * a01)
+            plane = (b0 * minor - a10 * (b1 * a02 - a11 * b2) + a01 * (b1 * a11 - a20 * b2)) / det
+            level[y, x] = plane if not plane > 0.0 else 0.0  # shadows only darken
+    return level
 
 
 def colour_model(samples: np.ndarray, bins: int, floor: float) -> Callable[[np.ndarray], np.ndarray]:
@@ -448,26 +477,33 @@ def refine_graph_cut(
     if not seed.any():
         return seed.astype(np.float32), plate
     border = _border(shot.shape[:2], settings.border_fraction)
-    # The plate is not blurred against the sharp shot: the backdrop is smooth, but a colour chart
-    # beside the stone is not, and a blurred plate makes every chart edge look like stone. Its noise is in `sigma`.
-    log_shot = np.log(np.maximum(shot, _LOG_FLOOR))  # [H, W, 3]
-    log_ratio = log_shot - np.log(np.maximum(plate, _LOG_FLOOR))
-    sigma, centre = _noise_sigma(log_ratio, plate, border)
-    log_ratio -= centre
-    blur = settings.contrast_blur_px
-    shot_b, plate_b = cv2.GaussianBlur(shot, (0, 0), blur), cv2.GaussianBlur(plate, (0, 0), blur)
-    relative = (shot_b - plate_b) / np.maximum(plate_b, _LOG_FLOOR)
-    edge_sigma, edge_centre = _noise_sigma(relative, plate_b, border)
-    relative -= edge_centre
-
     ys, xs = np.nonzero(seed)
     h, w = seed.shape
     my = int((ys.max() - ys.min() + 1) * settings.crop_margin) + 4
     mx = int((xs.max() - xs.min() + 1) * settings.crop_margin) + 4
     crop = (slice(max(0, ys.min() - my), min(h, ys.max() + my + 1)),
             slice(max(0, xs.min() - mx), min(w, xs.max() + mx + 1)))
-    ratio, variance, colours = log_ratio[crop], sigma[crop] ** 2 + settings.shadow_slack**2, log_shot[crop]
-    inverse = 1.0 / sigma[crop] ** 2
+    # The cues are read on the crop alone, their noise on the border strip. The plate is not blurred against
+    # the sharp shot: the backdrop is smooth, but a colour chart beside the stone is not, and a blurred plate
+    # makes every chart edge look like stone. Its noise is in `sigma`.
+
+    def log_ratio(region: np.ndarray | tuple[slice, slice]) -> tuple[np.ndarray, np.ndarray]:
+        log_shot = np.log(np.maximum(shot[region], _LOG_FLOOR))
+        return log_shot, log_shot - np.log(np.maximum(plate[region], _LOG_FLOOR))
+
+    colours, ratio = log_ratio(crop)  # [h, w, 3] each
+    sigma, centre = RelativeNoise.measure(log_ratio(border)[1], plate[border]).at(plate[crop])
+    ratio -= centre
+    blur = settings.contrast_blur_px
+    shot_b, plate_b = cv2.GaussianBlur(shot, (0, 0), blur), cv2.GaussianBlur(plate, (0, 0), blur)
+
+    def relative(region: np.ndarray | tuple[slice, slice]) -> np.ndarray:
+        return (shot_b[region] - plate_b[region]) / np.maximum(plate_b[region], _LOG_FLOOR)
+
+    edge_sigma, edge_centre = RelativeNoise.measure(relative(border), plate_b[border]).at(plate_b[crop])
+    edge_contrast = relative(crop) - edge_centre  # [h, w, 3]
+    variance = sigma**2 + settings.shadow_slack**2
+    inverse = 1.0 / sigma**2
     luma_ratio = (ratio * inverse).sum(axis=2) / inverse.sum(axis=2)  # [h, w] noise-weighted mean over channels
     background_cost_const = 0.5 * np.log(2 * np.pi * variance).sum(axis=2)
     hull_prior = settings.hull_prior_nats * seed[crop]
@@ -500,7 +536,7 @@ def refine_graph_cut(
         background_nll = 0.5 * ((ratio - shadow[..., None]) ** 2 / variance).sum(axis=2) + background_cost_const
         stone_nll = colour_model(colours[stone], settings.colour_bins, settings.colour_floor)(colours)
         # in noise units against the shadowed plate: the plate's edges and the shadow's gradient cancel
-        edges = (relative[crop] - np.expm1(shadow)[..., None]) / edge_sigma[crop]  # [h, w, 3]
+        edges = (edge_contrast - np.expm1(shadow)[..., None]) / edge_sigma  # [h, w, 3]
         cut = min_cut(background_nll - stone_nll + hull_prior, edges, settings.smoothness, frame)
         if np.array_equal(cut, stone):
             break  # a fixed point: every further round would cut the same
@@ -511,7 +547,7 @@ def refine_graph_cut(
     if stone.any():
         background[crop] *= np.exp(fitted_shadow(stone) if shadow is None else shadow)[..., None]
         if settings.matte_boundary:
-            coverage[crop] = matte_boundary(shot[crop], background[crop], stone, sigma[crop], settings.max_alpha_sigma)
+            coverage[crop] = matte_boundary(shot[crop], background[crop], stone, sigma, settings.max_alpha_sigma)
     return coverage, background
 
 
@@ -646,18 +682,19 @@ def unmix(shot: np.ndarray, background: np.ndarray, alpha: np.ndarray, settings:
         return colour
     solid = alpha >= 1.0
     fallback = shot[solid if solid.any() else partial].mean(axis=0)  # a stone with no solid pixel near
-    border = _border(shot.shape[:2], settings.border_fraction)
-    log_ratio = np.log(np.maximum(shot, _LOG_FLOOR)) - np.log(np.maximum(background, _LOG_FLOOR))
-    sigma, _ = _noise_sigma(log_ratio, np.maximum(background, _LOG_FLOOR), border)
     ys, xs = np.nonzero(partial)
     pad = int(np.ceil(3 * settings.edge_colour_px)) + 1
     box = (slice(max(0, ys.min() - pad), ys.max() + pad + 1), slice(max(0, xs.min() - pad), xs.max() + pad + 1))
+    border = _border(shot.shape[:2], settings.border_fraction)
+    on_border, level = shot[border], np.maximum(background[border], _LOG_FLOOR)
+    noise = RelativeNoise.measure(np.log(np.maximum(on_border, _LOG_FLOOR)) - np.log(level), level)
+    sigma = noise.at(np.maximum(background[box], _LOG_FLOOR))[0]
     c, b, a = shot[box], background[box], alpha[box][..., None]
     prior, spread, weight = nearby_stone_colour(c, solid[box], settings.edge_colour_px)
     known = (weight > 1e-3)[..., None]
     prior = np.where(known, prior, fallback)
     prior_var = np.where(known, spread, 0.0) + (settings.edge_colour_floor * np.maximum(prior, _LOG_FLOOR)) ** 2
-    mix_var = (sigma[box] ** 2 + settings.shadow_slack**2) * np.maximum(b, _LOG_FLOOR) ** 2
+    mix_var = (sigma**2 + settings.shadow_slack**2) * np.maximum(b, _LOG_FLOOR) ** 2
     residual = c - (1.0 - a) * b  # a F plus noise
     estimate = (a * residual / mix_var + prior / prior_var) / (a * a / mix_var + 1.0 / prior_var)
     colour[box] = np.where(partial[box][..., None], np.maximum(estimate, 0.0), c)
