@@ -10,6 +10,7 @@ is the pinhole camera with a perfect shutter, for tests that need one.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -59,18 +60,23 @@ class SimLens:
         out = cv2.undistortPoints(pts, cv_k, np.array(self.coefficients()), R=None, P=None, criteria=_ITERATE)
         return out.reshape(-1, 2)
 
+    @lru_cache(maxsize=8)
     def falloff(self, height: int, width: int) -> np.ndarray:
         """[H, W] share of the light that reaches each pixel: 1 on the axis, `corner_falloff_stops` down at the
-        corners, in the shape of the cos^4 law, (1 + c rho^2)^-2 over the radius rho to the corner."""
+        corners, in the shape of the cos^4 law, (1 + c rho^2)^-2 over the radius rho to the corner.
+
+        Read-only and cached: every shot of a scan exposes through the same falloff."""
         if not self.vignetting:
-            return np.ones((height, width))
-        if self.corner_falloff_stops < 0:
+            share = np.ones((height, width))
+        elif self.corner_falloff_stops < 0:
             raise BadInputError(f"vignetting of {self.corner_falloff_stops} stops: must not brighten the corners")
-        ys = np.arange(height) + 0.5 - height / 2.0
-        xs = np.arange(width) + 0.5 - width / 2.0
-        rho2 = (ys[:, None] ** 2 + xs[None, :] ** 2) / ((height / 2.0) ** 2 + (width / 2.0) ** 2)
-        c = 2.0 ** (self.corner_falloff_stops / 2.0) - 1.0
-        return (1.0 + c * rho2) ** -2
+        else:
+            ys = np.arange(height) + 0.5 - height / 2.0
+            xs = np.arange(width) + 0.5 - width / 2.0
+            rho2 = (ys[:, None] ** 2 + xs[None, :] ** 2) / ((height / 2.0) ** 2 + (width / 2.0) ** 2)
+            share = (1.0 + (2.0 ** (self.corner_falloff_stops / 2.0) - 1.0) * rho2) ** -2
+        share.flags.writeable = False
+        return share
 
     def shot_gain(self, rng: np.random.Generator) -> float:
         """This shot's exposure error as a gain on the light (1 with jitter off); drawn from the shot's generator."""

@@ -11,6 +11,7 @@ of each shot kept from its exposure (staged in a temporary folder until the scan
 from __future__ import annotations
 
 import tempfile
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -68,7 +69,9 @@ class SimRig:
     ptp: PtpCamera
     operator: SimOperator
     staging: tempfile.TemporaryDirectory
+    truth_writer: ThreadPoolExecutor  # stages each shot's truth image while the scan goes on
     shots: list[Shot] = field(default_factory=list)  # as exposed
+    staged: list[Future] = field(default_factory=list)  # the truth images being written
 
     @property
     def camera(self) -> PtpStillCamera:
@@ -81,6 +84,8 @@ class SimRig:
         and the truth must say where the camera really was; masks rendered at exposure are reused.
         Frames shot by an earlier (killed) run were not seen by this rig and are rendered anew.
         """
+        for write in self.staged:
+            write.result()  # a failed write is raised here
         frames, staged_images = [], []
         for entry in scan.read_manifest():
             elevation, azimuth, mask = entry.elevation_deg, entry.azimuth_deg, None
@@ -104,6 +109,7 @@ class SimRig:
         self.ptp.close()
         self.turntable.close()
         self.board.close()
+        self.truth_writer.shutdown(wait=True)
         self.staging.cleanup()
 
     def __enter__(self) -> "SimRig":
@@ -139,14 +145,17 @@ def build_sim_rig(
     board = start_fake_turntable(route, time_scale=time_scale, seed=seed)
     render = frame_source(world, board.firmware.position, sensor, seed)
     staging = tempfile.TemporaryDirectory(prefix="sim-truth-")
+    # one thread: the EXR encoder lets go of the GIL, so the next shot renders while this one's truth is written
+    truth_writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sim-truth")
     shots: list[Shot] = []
+    staged_writes: list[Future] = []
 
     def shoot(settings: CaptureSettings) -> tuple[bytes, str]:
         data, name = render(settings)
         if world.stone_present:
             elevation, azimuth = render.last_pose
             staged = Path(staging.name) / f"{render.count:05d}.exr"
-            write_truth_image(staged, TruthImage.of(render.last))
+            staged_writes.append(truth_writer.submit(write_truth_image, staged, TruthImage.of(render.last)))
             shots.append((elevation, azimuth, render.last.mask, staged))
         return data, name
 
@@ -155,10 +164,12 @@ def build_sim_rig(
         turntable = Turntable.connect(board.port, TurntableConfig())
     except BaseException:
         board.close()
+        truth_writer.shutdown()
         staging.cleanup()
         raise
     ptp = open_ptp_camera(backend=SimUsbBackend(camera_device))
-    return SimRig(world, board, camera_device, turntable, ptp, SimOperator(world), staging, shots)
+    return SimRig(world, board, camera_device, turntable, ptp, SimOperator(world), staging, truth_writer, shots,
+                  staged_writes)
 
 
 def direct_scan(
