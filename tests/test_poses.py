@@ -150,6 +150,23 @@ def test_rig_path_triangulates_points_on_the_true_surface_and_the_cross_check_ag
 
 
 @pytest.mark.slow
+def test_posing_the_same_images_again_gives_the_same_points_to_the_byte(speckled, tmp_path):
+    # COLMAP numbers images as their features finish and verifies pairs in thread order: on more than one
+    # thread, the same images gave other points, ring gains and training images on every run
+    scan = speckled[0]
+    points = []
+    for run in ("first", "second"):
+        copy = ScanFolder(tmp_path / run)
+        for folder in ("images", "masks"):
+            shutil.copytree(scan.root / folder, copy.root / folder)
+        for name in ("manifest.jsonl", "scan.json"):
+            shutil.copy(scan.root / name, copy.root / name)
+        pose_scan(copy, PoseSettings(), RigModel.nominal(RIG, list(ELEVATIONS)))
+        points.append((copy.poses_dir / "colmap" / "points3D.bin").read_bytes())
+    assert points[0] == points[1]
+
+
+@pytest.mark.slow
 def test_transforms_json_holds_the_rig_poses_in_opengl_axes_and_metres(speckled):
     scan = speckled[0]
     transforms = read_transforms(scan)

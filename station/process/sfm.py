@@ -33,6 +33,11 @@ class SfmSettings:
     peak_threshold: float = 0.004
     mask_erode_px: int = 2  # features on the silhouette edge see the backdrop: drop them
     num_threads: int = 2
+    # The same images give the same points: on more than one thread COLMAP numbers the images in the order
+    # their features finish, and its pair verification depends on the thread order, so points, ring gains and
+    # training images differed on every run. Images are renumbered by name after extraction, and pairs are
+    # matched on one thread. Triangulation and bundle adjustment are reproducible on num_threads.
+    reproducible: bool = True
     max_runtime_s: float = 600.0
     min_track_angle_deg: float = 1.5
     # Sparse rings (16 views, 20+ deg apart) leave few inliers per pair; COLMAP's defaults (15, 30)
@@ -104,10 +109,48 @@ def extract_and_match(
         extraction_options=extraction,
         device=pycolmap.Device.cpu,
     )
+    if settings.reproducible:
+        number_images_by_name(database)
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = settings.num_threads
+    matching.num_threads = 1 if settings.reproducible else settings.num_threads
     matching.guided_matching = settings.guided_matching
     pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+
+
+def number_images_by_name(database: Path) -> None:
+    """Rewrite a freshly extracted `database` with its images (and their frames) numbered in name order.
+
+    Extraction on several threads numbers them in the order their features finish, and matching and
+    triangulation work in image-id order."""
+    unordered = database.with_name(database.name + ".unordered")
+    database.rename(unordered)
+    source, target = pycolmap.Database.open(unordered), pycolmap.Database.open(database)
+    try:
+        for camera in source.read_all_cameras():
+            target.write_camera(camera, use_camera_id=True)
+        for rig in source.read_all_rigs():
+            target.write_rig(rig, use_rig_id=True)
+        frames = {frame.frame_id: frame for frame in source.read_all_frames()}
+        number_of = {}
+        for number, image in enumerate(sorted(source.read_all_images(), key=lambda image: image.name), start=1):
+            (data_id,) = frames[image.frame_id].data_ids  # one camera: one image a frame
+            frame = pycolmap.Frame()
+            frame.frame_id, frame.rig_id = number, frames[image.frame_id].rig_id
+            frame.add_data_id(pycolmap.data_t(data_id.sensor_id, number))
+            target.write_frame(frame, use_frame_id=True)
+            renumbered = pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=number)
+            renumbered.frame_id = number
+            target.write_image(renumbered, use_image_id=True)
+            target.write_keypoints(number, source.read_keypoints(image.image_id))
+            target.write_descriptors(number, source.read_descriptors(image.image_id))
+            number_of[image.image_id] = number
+        for prior in source.read_all_pose_priors():  # from EXIF GPS, when the images carry it
+            prior.corr_data_id = pycolmap.data_t(prior.corr_data_id.sensor_id, number_of[prior.corr_data_id.id])
+            target.write_pose_prior(prior)
+    finally:
+        source.close()
+        target.close()
+    unordered.unlink()
 
 
 def _rigid_from_c2w(c2w: np.ndarray) -> pycolmap.Rigid3d:
