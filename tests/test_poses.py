@@ -21,7 +21,7 @@ from station.process.poses import PoseSettings, PosingError, calibrate_from_scan
 from station.process.rig_model import (
     PosedView, RigModel, apply_similarity, axis_rotation, calibrate_rig, rotation_angle_deg, umeyama,
 )
-from station.process.sfm import SfmSettings
+from station.process.sfm import SfmSettings, number_images_by_name
 from station.process.transforms import read_transforms
 from sim.lens import SimLens
 from sim.scene import World, render
@@ -164,6 +164,38 @@ def test_posing_the_same_images_again_gives_the_same_points_to_the_byte(speckled
         pose_scan(copy, PoseSettings(), RigModel.nominal(RIG, list(ELEVATIONS)))
         points.append((copy.poses_dir / "colmap" / "points3D.bin").read_bytes())
     assert points[0] == points[1]
+
+
+@pytest.mark.slow
+def test_numbering_images_by_name_keeps_each_images_features_and_pose_prior(speckled, tmp_path):
+    images = speckled[0].images_dir
+    names = sorted(path.name for path in images.glob("*.png"))[:6]
+    database = tmp_path / "database.db"
+    for batch in (names[3:], names[:3]):  # ids out of name order, as threads finishing out of turn give them
+        pycolmap.extract_features(database, images, image_names=batch, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  device=pycolmap.Device.cpu)
+
+    def features(db: pycolmap.Database) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        return {image.name: (db.read_keypoints(image.image_id), db.read_descriptors(image.image_id).data)
+                for image in db.read_all_images()}
+
+    db = pycolmap.Database.open(database)
+    before = features(db)
+    prior = pycolmap.PosePrior()  # as COLMAP reads one from a JPEG's GPS tags
+    prior.corr_data_id = pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, 1),
+                                         db.read_image_with_name(names[3]).image_id)
+    prior.position = np.array([1.0, 2.0, 3.0])
+    db.write_pose_prior(prior)
+    db.close()
+
+    number_images_by_name(database)
+    db = pycolmap.Database.open(database)
+    assert {image.name: image.image_id for image in db.read_all_images()} == {n: k + 1 for k, n in enumerate(names)}
+    after = features(db)
+    assert all(np.array_equal(before[n][0], after[n][0]) and np.array_equal(before[n][1], after[n][1]) for n in names)
+    (moved,) = db.read_all_pose_priors()
+    assert moved.corr_data_id.id == 4 and np.allclose(moved.position, [1.0, 2.0, 3.0])
+    db.close()
 
 
 @pytest.mark.slow
