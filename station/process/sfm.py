@@ -33,11 +33,6 @@ class SfmSettings:
     peak_threshold: float = 0.004
     mask_erode_px: int = 2  # features on the silhouette edge see the backdrop: drop them
     num_threads: int = 2
-    # The same images give the same points: on more than one thread COLMAP numbers the images in the order
-    # their features finish, and its pair verification depends on the thread order, so points, ring gains and
-    # training images differed on every run. Images are renumbered by name after extraction, and pairs are
-    # matched on one thread. Triangulation and bundle adjustment are reproducible on num_threads.
-    reproducible: bool = True
     max_runtime_s: float = 600.0
     min_track_angle_deg: float = 1.5
     # Sparse rings (16 views, 20+ deg apart) leave few inliers per pair; COLMAP's defaults (15, 30)
@@ -109,10 +104,12 @@ def extract_and_match(
         extraction_options=extraction,
         device=pycolmap.Device.cpu,
     )
-    if settings.reproducible:
-        number_images_by_name(database)
+    # The same images must give the same points (and ring gains, and training images): on more than one thread
+    # COLMAP numbers images in the order their features finish, and its pair verification depends on the thread
+    # order. Triangulation and bundle adjustment are reproducible on num_threads.
+    number_images_by_name(database)
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = 1 if settings.reproducible else settings.num_threads
+    matching.num_threads = 1
     matching.guided_matching = settings.guided_matching
     pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
 
