@@ -245,6 +245,40 @@ def test_shadow_field_continues_a_shadow_slope_under_the_stone() -> None:
     np.testing.assert_allclose(field[20:40, 30:50], darkening[20:40, 30:50], atol=0.005)
 
 
+def reference_shadow_field(log_ratio: np.ndarray, background: np.ndarray, sigma_px: float) -> np.ndarray:
+    """The shadow field the plain way: per pixel, numpy's float64 solve of its Gaussian-weighted plane fit."""
+    radius = int(np.ceil(4 * sigma_px))
+    offsets = np.arange(-radius, radius + 1, dtype=np.float64)
+    dy, dx = np.meshgrid(offsets, offsets, indexing="ij")
+    window = np.exp(-0.5 * (dx**2 + dy**2) / sigma_px**2)
+    design = np.stack([np.ones_like(dx), dx, dy], axis=-1)  # [K, K, 3]: intercept and the two slopes
+    weight = np.pad(background.astype(np.float64), radius)
+    value = np.pad(np.where(background, log_ratio, 0.0).astype(np.float64), radius)
+    field = np.zeros(background.shape)
+    for y, x in np.ndindex(*background.shape):
+        w = window * weight[y:y + 2 * radius + 1, x:x + 2 * radius + 1]
+        if not w.sum() > 1e-3:
+            continue
+        normal = np.einsum("ij,ija,ijb->ab", w, design, design) + np.diag([0.0, 1.0, 1.0]) * 1e-2 * sigma_px**2 * w.sum()
+        rhs = np.einsum("ij,ija->a", w * value[y:y + 2 * radius + 1, x:x + 2 * radius + 1], design)
+        field[y, x] = min(np.linalg.solve(normal, rhs)[0], 0.0)
+    return field
+
+
+def test_shadow_field_matches_a_float64_solve_where_background_is_a_thin_line_or_a_few_far_pixels() -> None:
+    # the hard cases of the plane fit: background along one line (the ridge alone keeps the normal equations
+    # solvable) and pixels only just in reach (weight near the cut-off); the moments are filtered in float32
+    yy, xx = np.mgrid[0:36, 0:44]
+    darkening = (-0.5 - 0.02 * yy + 0.01 * xx).astype(np.float32)
+    background = np.zeros((36, 44), dtype=bool)
+    background[np.arange(36), np.arange(36) + 4] = True  # a diagonal line
+    background[2, 40] = background[33, 1] = True  # and two strays far from it
+    field = shadow_field(darkening, background, sigma_px=3.0)
+    reference = reference_shadow_field(darkening, background, sigma_px=3.0)
+    assert (reference < 0).sum() > 0.8 * reference.size  # the fit reaches most of the frame
+    np.testing.assert_allclose(field, reference, atol=2e-4)  # log units: far below any plate's noise
+
+
 def reference_cut_graph(evidence: np.ndarray, features: np.ndarray, smoothness: float,
                         fixed_background: np.ndarray) -> sparse.csr_array:
     """The graph cut's graph the plain way: numpy pair lists into scipy's COO (source n, sink n + 1)."""

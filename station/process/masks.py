@@ -262,42 +262,45 @@ def shadow_field(log_ratio: np.ndarray, background: np.ndarray, sigma_px: float)
 
     A Gaussian-weighted plane per pixel (local linear regression), so next to the stone, where
     only one side has background, the field continues the shadow's slope instead of flattening
-    it. Shadows only darken, so the field is clipped at 0.
+    it. Shadows only darken, so the field is clipped at 0. The moments are filtered in float32
+    (three times faster than float64) and solved in float64, where the cancellation is.
     """
     radius = int(np.ceil(4 * sigma_px))
     u = np.arange(-radius, radius + 1, dtype=np.float64)  # neighbour offset from the output pixel
     g = np.exp(-0.5 * (u / sigma_px) ** 2)
-    kernels = {0: g, 1: u * g, 2: u * u * g}
-    weight = background.astype(np.float64)  # [H, W]
-    value = np.where(background, log_ratio, 0.0).astype(np.float64)
+    kernels = {order: (u**order * g).astype(np.float32) for order in (0, 1, 2)}
+    weight = background.astype(np.float32)  # [H, W]
+    offset = float(np.mean(log_ratio[background])) if background.any() else 0.0  # fitted apart: float32 keeps less
+    value = np.where(background, log_ratio - offset, 0.0).astype(np.float32)
 
     def moment(image: np.ndarray, order_x: int, order_y: int) -> np.ndarray:
-        return cv2.sepFilter2D(image, cv2.CV_64F, kernels[order_x], kernels[order_y], borderType=cv2.BORDER_CONSTANT)
+        return cv2.sepFilter2D(image, cv2.CV_32F, kernels[order_x], kernels[order_y], borderType=cv2.BORDER_CONSTANT)
 
     weights = [moment(weight, *orders) for orders in ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))]
     values = [moment(value, *orders) for orders in ((0, 0), (1, 0), (0, 1))]
-    return _plane_level(*weights, *values, 1e-2 * sigma_px**2)
+    return _plane_level(*weights, *values, 1e-2 * sigma_px**2, offset)
 
 
 @njit(cache=True)
-def _plane_level(m00, m10, m01, m20, m11, m02, v0, v1, v2, ridge_per_weight):
-    """Each pixel's local plane, from its weighted moments [H, W], at the pixel itself, clipped at 0 (float32).
+def _plane_level(m00, m10, m01, m20, m11, m02, v0, v1, v2, ridge_per_weight, offset):
+    """Each pixel's local plane, from its weighted moments [H, W], at the pixel itself, clipped at 0 (float32;
+    the solve in float64).
 
     One pass in place of numpy's thirty over the crop."""
     level = np.zeros(m00.shape, np.float32)
     for y in range(m00.shape[0]):
         for x in range(m00.shape[1]):
-            a00 = m00[y, x]
+            a00 = np.float64(m00[y, x])
             if not a00 > 1e-3:
                 continue  # no background near: no shadow
             ridge = ridge_per_weight * a00  # keeps the slope tame where background lies along a line
-            a10, a01, a11 = m10[y, x], m01[y, x], m11[y, x]
-            a20, a02 = m20[y, x] + ridge, m02[y, x] + ridge
-            b0, b1, b2 = v0[y, x], v1[y, x], v2[y, x]
+            a10, a01, a11 = np.float64(m10[y, x]), np.float64(m01[y, x]), np.float64(m11[y, x])
+            a20, a02 = np.float64(m20[y, x]) + ridge, np.float64(m02[y, x]) + ridge
+            b0, b1, b2 = np.float64(v0[y, x]), np.float64(v1[y, x]), np.float64(v2[y, x])
             # the first unknown of the symmetric 3x3 normal equations, by Cramer's rule
             minor = a20 * a02 - a11 * a11
             det = a00 * minor - a10 * (a10 * a02 - a11 * a01) + a01 * (a10 * a11 - a20 * a01)
-            plane = (b0 * minor - a10 * (b1 * a02 - a11 * b2) + a01 * (b1 * a11 - a20 * b2)) / det
+            plane = (b0 * minor - a10 * (b1 * a02 - a11 * b2) + a01 * (b1 * a11 - a20 * b2)) / det + offset
             level[y, x] = plane if not plane > 0.0 else 0.0  # shadows only darken
     return level
 
