@@ -11,8 +11,10 @@ matrix from the raw stays in charge (develop.py).
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass
+from types import ModuleType
 
 import cv2
 import numpy as np
@@ -21,12 +23,18 @@ from scipy import ndimage
 from station.errors import BadInputError
 from station.process.develop import WhiteBalance
 
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore")  # colour warns at import that matplotlib is absent
-    import colour
-
 CHART_NAME = "ColorChecker24 - After November 2014"
 NEUTRAL_PATCHES = slice(18, 24)  # white 9.5 ... black 2 on the bottom row
+
+
+@functools.cache
+def _colour() -> ModuleType:
+    """colour-science, imported on first use: it takes about a second, paid by every stage process start
+    (the batch forkserver preloads this module), while only a scan with a chart in it needs it."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # colour warns at import that matplotlib is absent
+        import colour
+    return colour
 
 
 class ChartNotFoundError(BadInputError):
@@ -46,6 +54,7 @@ class ChartFit:
 
 def reference_srgb_linear() -> np.ndarray:
     """The published chart values (D50 xyY), Bradford-adapted to D65, as linear sRGB [24, 3]."""
+    colour = _colour()
     chart = colour.CCS_COLOURCHECKERS[CHART_NAME]
     xyz = colour.xyY_to_XYZ(np.array(list(chart.data.values())))
     return colour.XYZ_to_RGB(
@@ -55,12 +64,13 @@ def reference_srgb_linear() -> np.ndarray:
 
 def srgb_linear_to_lab(rgb: np.ndarray) -> np.ndarray:
     """Linear sRGB -> CIE Lab under D65, the space the ΔE00 figures are computed in."""
+    colour = _colour()
     xyz = colour.RGB_to_XYZ(rgb, colour.RGB_COLOURSPACES["sRGB"], illuminant=None)
     return colour.XYZ_to_Lab(xyz, colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"])
 
 
 def mean_delta_e00(rgb: np.ndarray, reference: np.ndarray) -> float:
-    return float(np.mean(colour.delta_E(srgb_linear_to_lab(rgb), srgb_linear_to_lab(reference), method="CIE 2000")))
+    return float(np.mean(_colour().delta_E(srgb_linear_to_lab(rgb), srgb_linear_to_lab(reference), method="CIE 2000")))
 
 
 def white_balance_from_linear(camera_rgb: np.ndarray, source: str, clip: float = 0.98) -> WhiteBalance:
@@ -148,7 +158,7 @@ def fit_chart(measured: np.ndarray) -> tuple[np.ndarray, float, float]:
     neutral = measured[NEUTRAL_PATCHES]
     gains = reference[NEUTRAL_PATCHES].sum(axis=0) / np.maximum(neutral.sum(axis=0), 1e-9)
     before = mean_delta_e00(measured * gains, reference)
-    matrix = colour.matrix_colour_correction(measured, reference, method="Cheung 2004")
+    matrix = _colour().matrix_colour_correction(measured, reference, method="Cheung 2004")
     after = mean_delta_e00(measured @ matrix.T, reference)
     return matrix, before, after
 
