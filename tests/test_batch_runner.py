@@ -120,6 +120,15 @@ def test_a_stage_process_finds_what_training_imports_to_build_its_optimizers_alr
     assert built.stdout.strip() == "[]"
 
 
+def test_the_stage_processes_preload_leaves_colour_science_to_the_scans_with_a_chart():
+    """Every stage process forks from the preload; only a chart fit needs colour-science."""
+    code = ("import sys; from station.batch.executors import PRELOAD; "
+            "[__import__(m) for m in PRELOAD if m.startswith('station')]; print('colour' in sys.modules)")
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert loaded.returncode == 0, loaded.stderr[-2000:]
+    assert loaded.stdout.strip() == "False", "the preload imports colour-science"
+
+
 def test_the_training_width_reaches_the_process_stage_as_a_parameter_of_its_run(queued):
     store, scan = queued
     # training is not under test: a free-space budget no disk meets parks the scan before it starts

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from fractions import Fraction
 from pathlib import Path
 
@@ -248,10 +246,3 @@ def test_simulated_chart_develops_within_delta_e_2_of_truth(tmp_path: Path) -> N
     # camera matrix + backdrop white balance, exposure scaled on the neutrals; no chart correction
     assert fit.delta_e_before <= 2.0
 
-
-def test_the_stages_load_colour_science_only_when_a_chart_is_fitted() -> None:
-    # every batch stage process starts from a preload of the stages; colour-science is a second of it
-    loaded = subprocess.run([sys.executable, "-c", "import sys, station.process.stage, station.ngs.pipeline, "
-                             "station.export.stage; print('colour' in sys.modules)"],
-                            capture_output=True, text=True, timeout=120)
-    assert loaded.stdout.strip() == "False", loaded.stderr[-2000:]

@@ -29,8 +29,8 @@ NEUTRAL_PATCHES = slice(18, 24)  # white 9.5 ... black 2 on the bottom row
 
 @functools.cache
 def _colour() -> ModuleType:
-    """colour-science, imported on first use: it takes about a second, paid by every stage process start
-    (the batch forkserver preloads this module), while only a scan with a chart in it needs it."""
+    """colour-science, imported on first use: it is one of the slowest imports every stage process start
+    pays (the batch forkserver preloads this module), and only a scan with a chart in it needs it."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # colour warns at import that matplotlib is absent
         import colour

@@ -262,15 +262,17 @@ def shadow_field(log_ratio: np.ndarray, background: np.ndarray, sigma_px: float)
 
     A Gaussian-weighted plane per pixel (local linear regression), so next to the stone, where
     only one side has background, the field continues the shadow's slope instead of flattening
-    it. Shadows only darken, so the field is clipped at 0. The moments are filtered in float32
-    (three times faster than float64) and solved in float64, where the cancellation is.
+    it. Shadows only darken, so the field is clipped at 0. The moments are filtered in float32,
+    which OpenCV does much faster than float64, and solved in float64, where the cancellation is.
     """
     radius = int(np.ceil(4 * sigma_px))
     u = np.arange(-radius, radius + 1, dtype=np.float64)  # neighbour offset from the output pixel
     g = np.exp(-0.5 * (u / sigma_px) ** 2)
     kernels = {order: (u**order * g).astype(np.float32) for order in (0, 1, 2)}
     weight = background.astype(np.float32)  # [H, W]
-    offset = float(np.mean(log_ratio[background])) if background.any() else 0.0  # fitted apart: float32 keeps less
+    # the values' mean is taken out before filtering and added back to the fitted level: float32 then holds
+    # their variation instead of their common offset
+    offset = float(np.mean(log_ratio[background])) if background.any() else 0.0
     value = np.where(background, log_ratio - offset, 0.0).astype(np.float32)
 
     def moment(image: np.ndarray, order_x: int, order_y: int) -> np.ndarray:
