@@ -51,6 +51,7 @@ class Faults:
     reset_on_move: int | None = None  # the board power-cycles halfway through that move
     alarm_on_move: int | None = None  # a hard limit (ALARM:1) trips halfway through that move
     vanish_on_move: int | None = None  # the USB link drops halfway through that move
+    starve_on_move: int | None = None  # the step buffer runs dry halfway: Idle there, the rest waits for `~`
     replug_after_s: float | None = 0.2  # wall seconds until a vanished link returns (None: never)
     ignore_resets: int = 0  # the next N ctrl-x bytes are lost, as while a board is still booting
 
@@ -186,6 +187,8 @@ class GrblFirmware:
 
     def _fire(self, t: float, kind: str) -> None:
         self._event = None
+        if kind == "starve":
+            return self._starve(t)
         self._halt(t)
         if kind == "reset":
             self._boot(t, power_on=True)
@@ -258,6 +261,13 @@ class GrblFirmware:
         self._state = "Alarm" if moving or was_alarm else "Idle"
         self._after_boot(now)
 
+    def _starve(self, now: float) -> None:
+        """The stepper ran out of segments (grbl-sim on a loaded host): GRBL ends the cycle there and
+        keeps the rest of the block planned, so a queued G4 P0 waits until a cycle start resumes it."""
+        self._mpos = list(self._on_steps(self._machine(now)))
+        self._seg = None
+        self._state = "Idle"
+
     def _halt(self, now: float) -> None:
         """Stop dead (reset, alarm, power loss): the counter keeps the steps taken so far."""
         self._mpos = list(self._on_steps(self._machine(now)))
@@ -297,7 +307,8 @@ class GrblFirmware:
 
     def _arm_faults(self, seg: Segment) -> None:
         midpoint = seg.t0 + 0.5 * seg.duration * self.time_scale
-        for knob, kind in (("reset_on_move", "reset"), ("alarm_on_move", "alarm"), ("vanish_on_move", "vanish")):
+        for knob, kind in (("reset_on_move", "reset"), ("alarm_on_move", "alarm"), ("vanish_on_move", "vanish"),
+                           ("starve_on_move", "starve")):
             left = getattr(self.faults, knob)
             if left is not None:
                 setattr(self.faults, knob, None if left <= 1 else left - 1)
@@ -339,6 +350,8 @@ class GrblFirmware:
     def _cycle_start(self, now: float) -> None:
         if self._state in ("Hold", "Door") and self._sub == 0:  # ~ during Hold:1 is ignored
             self._state = "Idle"
+            self._start_next(now)
+        elif self._state == "Idle" and self._seg is None and self._queue:  # planned motion that is not running
             self._start_next(now)
 
     def _override(self, byte: int) -> None:

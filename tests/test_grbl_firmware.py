@@ -274,6 +274,32 @@ def test_power_cycle_zeroes_the_counter_but_not_the_physical_stage():
     assert fw.position() == pytest.approx((45.0, 0.0), abs=HALF_STEP)
 
 
+def test_a_starved_cycle_stops_idle_part_way_and_only_a_cycle_start_finishes_the_move():
+    """As grbl-sim did on a loaded host: the stepper ran dry, GRBL ended the cycle with the block still
+    planned, and G4 P0 (protocol_buffer_synchronize) waits for a `~` that GRBL itself never sends."""
+    fw, clock = board()
+    fw.faults.starve_on_move = 1
+    assert send(fw, b"G1X90F600\nG4P0\n") == "ok\r\n"
+    clock.now += 20.0  # twice the move's 9.06 s
+    stalled = parse_status(send(fw, b"?").strip())
+    assert stalled.state == "Idle" and stalled.mpos[0] == pytest.approx(45.0, abs=HALF_STEP)
+    assert send(fw, b"~") == ""
+    clock.now += 2.0
+    assert parse_status(send(fw, b"?").strip()).state == "Run"
+    clock.now += 3.0  # the other 45 deg take 4.5 s
+    assert fw.read() == b"ok\r\n"  # the dwell's
+    done = parse_status(send(fw, b"?").strip())
+    assert done.state == "Idle" and done.mpos[0] == pytest.approx(90.0, abs=HALF_STEP)
+
+
+def test_a_cycle_start_with_nothing_planned_does_nothing():
+    fw, clock = board()
+    send(fw, b"G1X10F600\n")
+    clock.now += 5.0
+    assert send(fw, b"~") == ""
+    assert parse_status(send(fw, b"?").strip()).mpos[0] == pytest.approx(10.0, abs=HALF_STEP)
+
+
 def test_vanish_fault_unplugs_halfway_through_the_move_and_replugs_later():
     fw, clock = board()
     fw.faults.vanish_on_move = 1

@@ -244,6 +244,14 @@ def test_board_reset_mid_move_with_homing_rehomes_and_the_next_move_is_exact(rou
         assert angle_error(stage[0], 100.0) < HALF_STEP and stage[1] == pytest.approx(40.0, abs=HALF_STEP)
 
 
+def test_a_move_whose_cycle_ended_part_way_is_restarted_and_ends_at_its_target(route, caplog):
+    with rig(route) as (fake, table):
+        fake.firmware.faults.starve_on_move = 1
+        assert table.move_to(90.0, 40.0).wait(5.0) == pytest.approx((90.0, 40.0), abs=HALF_STEP)
+        assert fake.firmware.position() == pytest.approx((90.0, 40.0), abs=HALF_STEP)
+    assert "short of (90.0, 40.0) with its move unfinished; sending cycle start" in caplog.text
+
+
 def test_board_reset_mid_move_without_homing_is_restored_but_flagged_inexact():
     with rig() as (fake, table):
         fake.firmware.faults.reset_on_move = 1

@@ -425,6 +425,8 @@ class Turntable:
                 return max(deadline, now + self._estimate_s(self._work(status), target) * 1.5 + cfg.motion_margin_s)
             if status.state == "Idle" and self._at(status, target):
                 return min(deadline, now + cfg.reply_timeout_s)
+            if status.state == "Idle" and not self._cancelling.is_set():
+                self._restart_stalled_cycle(status, target)
             return deadline
 
         try:
@@ -442,6 +444,14 @@ class Turntable:
                                      f"{status.state} at {self._work(status)}, target {target}")
         self._settle(status)
         return self._known
+
+    def _restart_stalled_cycle(self, status: MachineStatus, target: tuple[float, float]) -> None:
+        """Idle short of the target with G4 P0 unanswered: the cycle ended with the move still planned
+        (a starved step buffer), and GRBL waits for a cycle start, which is a no-op with nothing planned.
+        The deadline stays, so a board that lost its plan still times out."""
+        log.warning("turntable on %s stopped at %s short of %s with its move unfinished; sending cycle start",
+                    self.port, tuple(round(w, 3) for w in self._work(status)), target)
+        self._p.line.write(b"~")
 
     def _after_reset(self) -> tuple[float, float]:
         """A reset from Hold:0 keeps MPos and the G54 reference: sync, restore modal state, re-read."""
