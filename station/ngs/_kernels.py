@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit, prange
 
 from station.ngs import conventions
+from station.ngs._parallel import PRANGE_ONLY
 from station.ngs.conventions import TILE
 
 TILE_PIX = TILE * TILE
@@ -200,7 +201,7 @@ def depth_order(depths):
     return order
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     """Per-tile depth-sorted intersection lists -> tile_offsets [T+1], isect_gid [M], gauss_offsets [N+1],
     gauss_slots [M] (for Gaussian g, the list positions of its intersections, tile-major order), extents [N, 2]
@@ -346,7 +347,7 @@ def _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, 
     return p0, p1
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
 def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, extents, width, height, fast):
     """Composite front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W] int32
     (position in the tile list where the pixel stopped; the list length if it never did), taken [M, 2 * STRIPS]
@@ -414,7 +415,7 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
     return feats, t_final, n_proc, taken
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
 def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid, extents, width, height,
                      alpha_level, fast):
     """Per pixel, the depth of the Gaussian whose compositing takes alpha to that pixel's `alpha_level` [H, W] or
@@ -494,7 +495,7 @@ def _taken_span(taken, i, s):
     return _pixels(s, int(taken[i, 2 * s]), int(taken[i, 2 * s + 1]))
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
 def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, isect_gid, taken, width, height,
                   feats, t_final, n_proc, g_feats, g_alpha, fast):
     """Per-intersection gradients in list order -> slots [M, 6 + D]: d means2d (2), d conic (3), d colour (D),
@@ -592,7 +593,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
     return slots
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=PRANGE_ONLY, cache=True)
 def reduce_per_gaussian(slot_grads, gauss_offsets, gauss_slots):
     """Sum per-intersection gradient rows [M, K] into per-Gaussian rows [N, K], each Gaussian in a fixed order."""
     n = gauss_offsets.shape[0] - 1
@@ -606,7 +607,7 @@ def reduce_per_gaussian(slot_grads, gauss_offsets, gauss_slots):
     return out
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
 def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, taken, width, height, n_proc, fast,
                        counts, cursor, ids, fill):
     """One pass over every pixel's contributors: count them (fill=False) or write their ids (fill=True)."""

@@ -18,8 +18,8 @@ import math
 import numpy as np
 from numba import njit, prange
 from numba.core.compiler import Compiler
-from numba.core.cpu_options import ParallelOptions
 
+from station.ngs._parallel import PRANGE_ONLY
 from station.ngs.conventions import EPS2D, SH_C0, SH_C1, SH_C2, SH_C3
 
 C20, C21, C22, C23, C24 = SH_C2
@@ -34,13 +34,6 @@ class _NoAlias(Compiler):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.state.flags.noalias = True
-
-
-# parallel with prange alone: the other passes make each np.zeros a gufunc of its own, seconds of compile for
-# microseconds of work. An options object, not a dict: numba empties a dict as it reads it, and a second signature
-# would get them all.
-PRANGE_ONLY = ParallelOptions({"comprehension": False, "reduction": False, "inplace_binop": False, "setitem": False,
-                               "numpy": False, "stencil": False, "fusion": False})
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)

@@ -12,11 +12,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from station.ngs._parallel import PRANGE_ONLY
+
 C1 = 0.01**2
 C2 = 0.03**2
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
 def ssim_fwd(x, y, taps):
     """-> (sum of the SSIM map, d SSIM / d mean_x, d SSIM / d mean(x^2), d SSIM / d mean(xy)), maps [C, H', W']."""
     n_ch, h, w = x.shape
@@ -71,7 +73,7 @@ def ssim_fwd(x, y, taps):
     return row_sums.sum(), d_mu, d_xx, d_xy
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
 def ssim_bwd(scale, x, y, taps, d_mu, d_xx, d_xy):
     """d (scale * sum of the SSIM map) / d x -> [C, H, W]: each window's derivatives spread back over its pixels."""
     n_ch, h, w = x.shape
