@@ -261,17 +261,20 @@ class GrblFirmware:
         self._state = "Alarm" if moving or was_alarm else "Idle"
         self._after_boot(now)
 
+    def _stop_here(self, now: float) -> None:
+        """End the running segment where the stage is now; the counter keeps the whole steps taken."""
+        self._mpos = list(self._on_steps(self._machine(now)))
+        self._seg = None
+
     def _starve(self, now: float) -> None:
         """The stepper ran out of segments (grbl-sim on a loaded host): GRBL ends the cycle there and
         keeps the rest of the block planned, so a queued G4 P0 waits until a cycle start resumes it."""
-        self._mpos = list(self._on_steps(self._machine(now)))
-        self._seg = None
+        self._stop_here(now)
         self._state = "Idle"
 
     def _halt(self, now: float) -> None:
         """Stop dead (reset, alarm, power loss): the counter keeps the steps taken so far."""
-        self._mpos = list(self._on_steps(self._machine(now)))
-        self._seg = None
+        self._stop_here(now)
         self._queue.clear()
         self._planned = list(self._mpos)
         self._blocked = False

@@ -245,4 +245,3 @@ def test_simulated_chart_develops_within_delta_e_2_of_truth(tmp_path: Path) -> N
     fit = locate_and_fit_chart(develop_raw(path, DevelopSettings(), wb).linear)
     # camera matrix + backdrop white balance, exposure scaled on the neutrals; no chart correction
     assert fit.delta_e_before <= 2.0
-

@@ -292,12 +292,15 @@ def test_a_starved_cycle_stops_idle_part_way_and_only_a_cycle_start_finishes_the
     assert done.state == "Idle" and done.mpos[0] == pytest.approx(90.0, abs=HALF_STEP)
 
 
-def test_a_cycle_start_with_nothing_planned_does_nothing():
+def test_a_cycle_start_during_a_dwell_neither_moves_nor_lengthens_it():
+    """Idle with no move planned, as while G4 waits: `~` must not start (or restart) anything."""
     fw, clock = board()
-    send(fw, b"G1X10F600\n")
-    clock.now += 5.0
+    assert send(fw, b"G4P1\n") == ""
+    clock.now += 0.6
     assert send(fw, b"~") == ""
-    assert parse_status(send(fw, b"?").strip()).mpos[0] == pytest.approx(10.0, abs=HALF_STEP)
+    clock.now += 0.5  # 1.1 s after the dwell began
+    assert fw.read() == b"ok\r\n"
+    assert parse_status(send(fw, b"?").strip()).mpos[0] == 0.0
 
 
 def test_vanish_fault_unplugs_halfway_through_the_move_and_replugs_later():
