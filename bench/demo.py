@@ -86,9 +86,9 @@ def main() -> None:
         if args.against:
             old = Path(tmp) / "before-tree"
             old.mkdir()
-            unpack(args.against, old)
+            before = unpack(args.against, old)
             runs["before"] = run_demo(old, Path(tmp) / "before", Path(tmp) / "before-cache") | {
-                "revision": args.against, "numba_cache": "empty"}
+                "revision": before, "numba_cache": "empty"}
         cache, revision = Path(tmp) / "after-cache", working_tree()
         runs["after"] = run_demo(ROOT, Path(tmp) / "after", cache) | {"revision": revision, "numba_cache": "empty"}
         runs["after, warm"] = run_demo(ROOT, Path(tmp) / "after-warm", cache) | {

@@ -262,7 +262,7 @@ def against(rev: str, rounds: int, out: Path) -> None:
     machine load; quotes per-config medians and their ratio. Each tree's first process (numba compile) is
     not counted."""
     with tempfile.TemporaryDirectory(prefix="raster-ab-") as old:
-        unpack(rev, Path(old))
+        before = unpack(rev, Path(old))
         trees = {"before": old, "after": str(ROOT)}
 
         def run(tree: str, n: int, size: int, repeats: int) -> dict:
@@ -298,7 +298,7 @@ def against(rev: str, rounds: int, out: Path) -> None:
                 f"{med['before', key]:>7.1f}>{med['after', key]:<7.1f} {ratio[key]:>6.2f}" for key in keys)
                 + f" {load:>5.1f}", flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"benchmark": "raster", "before": rev, "after": working_tree(),
+    out.write_text(json.dumps({"benchmark": "raster", "before": before, "after": working_tree(),
                                "rounds": rounds, "threads": 2,
                                "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
                                "configs": rows}, indent=2) + "\n")

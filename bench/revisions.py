@@ -8,10 +8,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def unpack(rev: str, dest: Path) -> None:
-    """Revision `rev`'s files (git archive, so no checkout or worktree is touched) into the folder `dest`."""
-    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True, check=True).stdout
+def unpack(rev: str, dest: Path) -> str:
+    """Revision `rev`'s files (git archive, so no checkout or worktree is touched) into the folder `dest`;
+    returns its short commit hash, the label a result keeps (a name such as HEAD moves on)."""
+    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", f"{rev}^{{commit}}"],
+                            capture_output=True, text=True, check=True).stdout.strip()
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", commit], capture_output=True, check=True).stdout
     subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    return commit
 
 
 def working_tree() -> str:

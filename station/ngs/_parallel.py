@@ -1,4 +1,4 @@
-"""The numba parallel options every kernel of the rasteriser compiles with."""
+"""The numba parallel options every training kernel (projection, rasteriser, SSIM) compiles with."""
 
 from __future__ import annotations
 
