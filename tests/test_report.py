@@ -88,6 +88,9 @@ def test_training_curves_are_inline_polylines_and_absent_held_out_error_is_expla
         {"step": 1500, "extend": False, "reason": "SOS 0.950 reached 0.95, PSNR flat"}]})
     assert with_eval.count("<polyline") == 4  # losses, held-out PSNR and held-out SOS
     assert "Planned 1000 steps, trained 1500" in with_eval and "SOS 0.910 below 0.95 and still rising" in with_eval
+    ended = report(GOOD, {"losses": losses, "held_out": held_out, "planned_steps": 2500, "extensions": [
+        {"step": 1500, "extend": False, "finished_early": True, "reason": "SOS 0.995 reached 0.99"}]})
+    assert "Planned 2500 steps, ended at step 1500: SOS 0.995 reached 0.99" in ended
     sh = {"trained": 1, "kept": 0, "tolerance_db": 0.1, "held_out_psnr": {"0": 41.2, "1": 41.25}}
     with_sh = report(GOOD, {"losses": losses, "sh_degree": sh})
     assert "written at degree 0" in with_sh and "41.20 dB at degree 0, 41.25 dB at degree 1" in with_sh

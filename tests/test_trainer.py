@@ -25,7 +25,7 @@ from station.ngs.resolution import ResolutionConfig, resolution_decision
 from station.ngs.presets import make_config
 from station.ngs.sos import evaluate_scan, score_splat
 from station.ngs.sh_degree import cut_to_degree, sh_degree_choice
-from station.ngs.stopping import ExtendConfig, extension_decision
+from station.ngs.stopping import ExtendConfig, early_finish_decision, extension_decision
 from station.ngs.strategy import DefaultStrategy, DensifyConfig
 from station.ngs.trainer import TrainConfig, Trainer
 from station.ngs.warmup import exercise_kernels, start_kernel_warmup
@@ -337,6 +337,31 @@ def test_the_extension_decision_reads_the_last_two_evaluations():
     before_infill = [{"step": 500, "psnr": 30.0, "sos": None}, {"step": 1000, "psnr": 30.1, "sos": None}]
     assert not extension_decision(cfg, before_infill, 0, 500)["extend"]
     assert extension_decision(ExtendConfig(), evals, 0, 500)["reason"] == "extension off"
+
+
+def test_the_early_finish_needs_the_ngs_phases_over_and_both_held_out_figures_past_their_marks():
+    cfg = ExtendConfig(finish_sos=0.99, psnr_target_db=40.0)
+    opaque = {"step": 2000, "psnr": 48.4, "sos": 0.995}
+    decision = early_finish_decision(cfg, [opaque], phases_over=True)
+    assert decision["finished_early"] and decision["step"] == 2000 and not decision["extend"]
+    assert early_finish_decision(cfg, [opaque], phases_over=False) is None  # the infill may still change
+    assert early_finish_decision(cfg, [{**opaque, "sos": 0.96}], True) is None  # past the gate, not yet opaque
+    assert early_finish_decision(cfg, [{**opaque, "psnr": 35.0}], True) is None  # the photos still improve visibly
+    assert early_finish_decision(cfg, [{**opaque, "sos": None}], True) is None  # no infill, no SOS
+    assert early_finish_decision(cfg, [{**opaque, "psnr": math.nan}], True) is None  # no held-out views
+    assert early_finish_decision(ExtendConfig(), [opaque], True) is None  # off unless the preset asks
+
+
+def test_a_run_opaque_before_its_plan_ends_stops_at_that_evaluation_and_stays_stopped_when_resumed(scan, tmp_path):
+    scene = load_scene(scan[0])
+    passes = ExtendConfig(finish_sos=0.0, psnr_target_db=-math.inf)  # every evaluation after the freeze passes
+    cfg = replace(TINY, eval_every=10, extend=passes)
+    trainer = Trainer(scene, cfg, tmp_path / "early")
+    report = trainer.run()
+    assert trainer.ngs.freeze_step <= report.steps == 20 < TINY.steps  # not at step 10: the infill was not final
+    assert [d.get("finished_early") for d in trainer.extensions] == [True]
+    again = Trainer(scene, cfg, tmp_path / "early").run()
+    assert again.resumed_from == 20 and again.steps == 20
 
 
 def killed_and_resumed(scene, cfg: TrainConfig, root, kill_at: int):

@@ -257,7 +257,11 @@ def _curves(train: dict) -> str:
                      + svg_curve(steps, [r.get("sos") for r in held], "held-out SOS (once the infill exists)", "")
                      + "</div>")
         decisions = train.get("extensions") or []
-        if any(d.get("extend") for d in decisions):
+        finished = next((d for d in decisions if d.get("finished_early")), None)
+        if finished:
+            parts.append(f"<p>Planned {train.get('planned_steps')} steps, ended at step {finished.get('step')}: "
+                         f"{html.escape(finished.get('reason', ''))}.</p>")
+        elif any(d.get("extend") for d in decisions):
             first = next(d for d in decisions if d.get("extend"))
             parts.append(f"<p>Planned {train.get('planned_steps')} steps, trained {steps[-1]}: extended at step "
                          f"{first.get('step')} ({html.escape(first.get('reason', ''))}), stopped at step "

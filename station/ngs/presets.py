@@ -29,8 +29,8 @@ def fast_preset() -> TrainConfig:
     """Short CPU run (demo, CI, the station's default); every schedule keeps the paper's proportions.
 
     Sized by held-out error against training size (docs/method.md): a larger Gaussian budget bought no
-    held-out PSNR, steps bought SOS. So the plan is a floor: a scene still gaining SOS trains on
-    (stopping.py), the budget follows the stone's size on screen (DensifyConfig.per_object_pixel), colour is
+    held-out PSNR, steps bought SOS. So the plan is a guide: a scene opaque early ends early, one still
+    gaining SOS trains on (stopping.py), the budget follows the stone's size on screen (DensifyConfig.per_object_pixel), colour is
     written at the lowest SH degree its held-out views need (sh_degree.py), and training starts coarse and
     moves up once that stops paying (resolution.py).
     """
@@ -42,7 +42,7 @@ def fast_preset() -> TrainConfig:
         eval_every=500,
         densify=DensifyConfig(max_gaussians=60_000, per_object_pixel=2.65),
         ngs=NGSConfig(infill=InfillConfig(levels=(32, 64), erosion_iters=(3, 4))),
-        extend=ExtendConfig(max_extra_steps=3_000),
+        extend=ExtendConfig(max_extra_steps=3_000, finish_sos=0.99),
         resolution=ResolutionConfig(start_downscale=2),
     )
 

@@ -1,11 +1,13 @@
-"""How long to train: the preset's schedule, extended while the scene's own held-out error improves.
+"""How long to train: the preset's schedule, cut short or extended by the scene's own held-out error.
 
 The NGS phases are fractions of a planned step count, so the plan has to be fixed up front. What a
-scene needs shows only at the end: a small stone on a softbox is opaque after the fast preset's
-2,500 steps, a larger or shinier one is not yet. So after the plan, training goes on in blocks of
-`eval_every` steps while SOS is below its target and still rising, or while held-out PSNR still
-rises clearly and is below its own target, up to a cap. Every decision, with the figures behind it,
-is kept in train_metrics.json.
+scene needs shows only as it trains: a small stone on a softbox is opaque well before the fast
+preset's 2,500 steps, a larger or shinier one is not yet opaque at the end. So once the NGS phases
+are over, a run whose held-out SOS and PSNR are both past where more training could show in the
+asset ends at that evaluation; and after the plan, training goes on in blocks of `eval_every` steps
+while SOS is below its target and still rising, or while held-out PSNR still rises clearly and is
+below its own target, up to a cap. Every decision, with the figures behind it, is kept in
+train_metrics.json.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from dataclasses import dataclass
 
 @dataclass
 class ExtendConfig:
+    """How far past its plan a run may train on, and when it may end before it."""
+
     max_extra_steps: int = 0  # 0: train exactly the planned steps
     sos_target: float = 0.95  # no extension for SOS once the held-out SOS reaches this
     min_sos_gain: float = 0.005  # per block, averaged over `sos_window` blocks: a smaller gain is a plateau
@@ -22,6 +26,22 @@ class ExtendConfig:
     # Per block. Held-out PSNR wanders between evaluations once it has converged, so only a clear rise counts.
     min_psnr_gain_db: float = 0.25
     psnr_target_db: float = 40.0  # no extension for PSNR above this: further gains are not visible in the asset
+    # End before the plan once the NGS phases are over and held-out SOS is at least this with PSNR at its
+    # target: the surface is opaque from every held-out view. None: always train the whole plan.
+    finish_sos: float | None = None
+
+
+def early_finish_decision(cfg: ExtendConfig, evals: list[dict], phases_over: bool) -> dict | None:
+    """The decision to end the run at the last held-out evaluation, before its plan; None to train on."""
+    last = evals[-1] if evals else {}
+    sos, psnr = last.get("sos"), last.get("psnr")
+    if cfg.finish_sos is None or not phases_over or sos is None or psnr is None:
+        return None
+    if sos < cfg.finish_sos or not psnr >= cfg.psnr_target_db:
+        return None
+    return {"step": last.get("step"), "extend": False, "finished_early": True,
+            "reason": f"SOS {sos:.3f} reached {cfg.finish_sos:g} and PSNR {psnr:.1f} dB is above "
+                      f"{cfg.psnr_target_db:g} after the NGS phases: the rest of the plan would not show in the asset"}
 
 
 def extension_decision(cfg: ExtendConfig, evals: list[dict], extra_steps_so_far: int, block: int) -> dict:

@@ -27,7 +27,7 @@ from station.ngs.ngs_schedule import NGSConfig, NGSPhases
 from station.ngs.raster import rasterization
 from station.ngs.resolution import ResolutionConfig, resolution_decision
 from station.ngs.sos import held_out_sos
-from station.ngs.stopping import ExtendConfig, extension_decision
+from station.ngs.stopping import ExtendConfig, early_finish_decision, extension_decision
 from station.ngs.strategy import DefaultStrategy, DensifyConfig, DensifyState
 from station.scanfolder import atomic_write_with
 
@@ -59,7 +59,7 @@ class TrainConfig:
     loss: LossConfig = field(default_factory=LossConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)  # in 30k-step units, scaled to `steps`
     ngs: NGSConfig = field(default_factory=NGSConfig)
-    extend: ExtendConfig = field(default_factory=ExtendConfig)  # blocks of eval_every past `steps` (stopping.py)
+    extend: ExtendConfig = field(default_factory=ExtendConfig)  # past `steps`, or an early end (stopping.py)
     resolution: ResolutionConfig = field(default_factory=ResolutionConfig)  # coarse-to-fine (resolution.py)
 
 
@@ -171,7 +171,11 @@ class Trainer:
 
     @property
     def target_steps(self) -> int:
-        """The planned steps plus one block of eval_every for every extension decided so far."""
+        """The planned steps plus one block of eval_every for every extension decided so far, or the step the
+        run finished early at."""
+        finished = [d["step"] for d in self.extensions if d.get("finished_early")]
+        if finished:
+            return finished[0]
         return self.cfg.steps + self.cfg.eval_every * sum(d["extend"] for d in self.extensions)
 
     def sh_degree_at(self, step: int) -> int:
@@ -248,6 +252,8 @@ class Trainer:
                 self.evals.append({"step": self.step, "seconds": round(self.seconds, 2), **self.held_out()})
                 if last:
                     self._decide_extension()
+                else:
+                    last = self._finish_early()
             if self.step % self.cfg.checkpoint_every == 0 or last:
                 self.save_checkpoint()
         return TrainReport(
@@ -269,6 +275,13 @@ class Trainer:
         decision = resolution_decision(self.cfg.resolution, at_level, self.step - self.level_start,
                                        self.cfg.resolution.level_limit(self.cfg.steps))
         self.resolution_checks.append(decision)
+
+    def _finish_early(self) -> bool:
+        phases_over = self.ngs is not None and self.step >= self.ngs.freeze_step
+        decision = early_finish_decision(self.cfg.extend, self.evals, phases_over)
+        if decision is not None:
+            self.extensions.append(decision)
+        return decision is not None
 
     def _decide_extension(self) -> None:
         self.extensions.append(extension_decision(self.cfg.extend, self.evals, self.target_steps - self.cfg.steps,
