@@ -1,8 +1,9 @@
 """Compile every stage's numba kernels into one cache before the test workers start (see conftest.py).
 
 Two processes compile at once, each in modules of its own, so no kernel's cache index is written by
-both: training's kernels (station.ngs.warmup) and a tiny scan's process stage. Then that scan runs
-through train, which loads its kernels, and export, which compiles its own.
+both: the rasteriser's kernels (station.ngs.warmup) in one; in the other a tiny scan's process stage,
+then the SSIM kernels and the export's opacity field, which would otherwise wait for the rasteriser's.
+Then that scan runs through train and export, which load their kernels.
 
 Run as `python tests/warm_kernels.py WORKDIR` with NUMBA_CACHE_DIR set; exits non-zero if a stage failed.
 """
@@ -13,19 +14,35 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 STATION = [sys.executable, "-m", "station"]
 
 
+def exercise_opacity_field() -> None:
+    """The export mesher's kernel, on two Gaussians with the argument types export passes."""
+    from station.export.opacity_field import opacity_field
+    from station.export.splat_model import SplatModel
+
+    model = SplatModel(means=np.zeros((2, 3)), scales_log=np.full((2, 3), -3.0), quats=np.tile([1.0, 0, 0, 0], (2, 1)),
+                       opacity_logit=np.zeros(2), sh_dc=np.zeros((2, 3)), sh_rest=np.zeros((2, 0, 3)))
+    opacity_field(model, np.full(3, -0.1), 0.05, (4, 4, 4))
+
+
 def main(workdir: Path) -> int:
-    training = subprocess.Popen([sys.executable, "-c",
-                                 "from station.ngs.warmup import exercise_kernels; exercise_kernels()"])
+    raster = subprocess.Popen([sys.executable, "-c",
+                               "from station.ngs.warmup import exercise_raster_kernels; exercise_raster_kernels()"])
     sys.path.insert(0, str(Path(__file__).parent))
     from batch_support import shoot
 
     scan = shoot(workdir / "scan", "1")
     process = subprocess.run([*STATION, "process", str(scan)], capture_output=True, text=True)
-    trained = training.wait()
-    if process.returncode != 0 or trained != 0:
+    from station.ngs.warmup import exercise_ssim_kernels
+
+    exercise_ssim_kernels()
+    exercise_opacity_field()
+    rastered = raster.wait()
+    if process.returncode != 0 or rastered != 0:
         sys.stderr.write(process.stderr[-3000:])
         return 1
     run = subprocess.run([*STATION, "run", str(scan), "--preset", "tiny"], capture_output=True, text=True)

@@ -21,9 +21,14 @@ from station.ngs.raster import median_depth, pixel_contributors, rasterization
 
 
 def exercise_kernels() -> None:
-    """Every training kernel once, with the argument types training passes: float32, SH coefficients, an
-    extra channel (NGS's noise flag), a backward pass, the SSIM loss, and the infill's depth and contributor
-    queries."""
+    """Every training kernel once, with the argument types training passes."""
+    exercise_raster_kernels()
+    exercise_ssim_kernels()
+
+
+def exercise_raster_kernels() -> None:
+    """The rasteriser's kernels: float32, SH coefficients, an extra channel (NGS's noise flag), a backward pass,
+    and the infill's depth and contributor queries."""
     generator = torch.Generator().manual_seed(0)
     n, size = 64, 32
     means = ((torch.rand(n, 3, generator=generator) - 0.5) * 0.5).requires_grad_()
@@ -37,10 +42,17 @@ def exercise_kernels() -> None:
     for extra in (None, torch.ones(n, 1)):
         colors, alphas, _ = rasterization(means, quats, scales, opacities, coeffs, viewmat[None], K[None], size, size,
                                           sh_degree=1, extra=extra)
-        (colors.sum() + alphas.sum() + ssim(colors[0, ..., :3], torch.zeros(size, size, 3))).backward()
+        (colors.sum() + alphas.sum()).backward()
     surface = [t.detach() for t in (means, quats, scales, opacities)]
     median_depth(*surface, viewmat, K, size, size, alpha_level=torch.full((size, size), 0.5))
     pixel_contributors(*surface, viewmat, K, size, size)
+
+
+def exercise_ssim_kernels() -> None:
+    """The SSIM loss's kernels, forward and backward, on float32 images (a module of their own: a test warm-up
+    compiles them beside the rasteriser's)."""
+    image = torch.rand(32, 32, 3, generator=torch.Generator().manual_seed(0)).requires_grad_()
+    ssim(image, torch.zeros(32, 32, 3)).backward()
 
 
 def _exercise_kernels_niced() -> None:
