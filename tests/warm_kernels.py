@@ -2,8 +2,8 @@
 
 Two processes compile at once, each in modules of its own, so no kernel's cache index is written by
 both: the rasteriser's kernels (station.ngs.warmup) in one; in the other a tiny scan's process stage,
-then the SSIM kernels and the export's opacity field, which would otherwise wait for the rasteriser's.
-Then that scan runs through train and export, which load their kernels.
+then the SSIM kernels and the export's opacity field. Between them they cover what a tiny scan's train
+and export call: running those too compiled nothing more, and cost the warm-up about 17 s.
 
 Run as `python tests/warm_kernels.py WORKDIR` with NUMBA_CACHE_DIR set; exits non-zero if a stage failed.
 """
@@ -44,10 +44,6 @@ def main(workdir: Path) -> int:
     rastered = raster.wait()
     if process.returncode != 0 or rastered != 0:
         sys.stderr.write(process.stderr[-3000:])
-        return 1
-    run = subprocess.run([*STATION, "run", str(scan), "--preset", "tiny"], capture_output=True, text=True)
-    if run.returncode not in (0, 1):  # 1: the tiny model's gate failed, as it mostly does
-        sys.stderr.write(run.stderr[-3000:])
         return 1
     return 0
 
