@@ -11,8 +11,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def unpack(rev: str, dest: Path) -> str:
     """Revision `rev`'s files (git archive, so no checkout or worktree is touched) into the folder `dest`;
     returns its short commit hash, the label a result keeps (a name such as HEAD moves on)."""
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", f"{rev}^{{commit}}"],
-                            capture_output=True, text=True, check=True).stdout.strip()
+    commit = short_hash(rev)
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", commit], capture_output=True, check=True).stdout
     subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
     return commit
@@ -20,6 +19,10 @@ def unpack(rev: str, dest: Path) -> str:
 
 def working_tree() -> str:
     """This tree's label in a result: its commit, and that uncommitted edits may be in it."""
-    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
-                          text=True).stdout.strip()
-    return f"{head} (working tree)"
+    return f"{short_hash('HEAD')} (working tree)"
+
+
+def short_hash(rev: str) -> str:
+    """The short hash of the commit `rev` names."""
+    return subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", f"{rev}^{{commit}}"],
+                          capture_output=True, text=True, check=True).stdout.strip()

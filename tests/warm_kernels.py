@@ -16,14 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
+from station.export.opacity_field import opacity_field
+from station.export.splat_model import SplatModel
+from station.ngs.warmup import exercise_ssim_kernels
+
 STATION = [sys.executable, "-m", "station"]
 
 
 def exercise_opacity_field() -> None:
     """The export mesher's kernel, on two Gaussians with the argument types export passes."""
-    from station.export.opacity_field import opacity_field
-    from station.export.splat_model import SplatModel
-
     model = SplatModel(means=np.zeros((2, 3)), scales_log=np.full((2, 3), -3.0), quats=np.tile([1.0, 0, 0, 0], (2, 1)),
                        opacity_logit=np.zeros(2), sh_dc=np.zeros((2, 3)), sh_rest=np.zeros((2, 0, 3)))
     opacity_field(model, np.full(3, -0.1), 0.05, (4, 4, 4))
@@ -37,8 +38,6 @@ def main(workdir: Path) -> int:
 
     scan = shoot(workdir / "scan", "1")
     process = subprocess.run([*STATION, "process", str(scan)], capture_output=True, text=True)
-    from station.ngs.warmup import exercise_ssim_kernels
-
     exercise_ssim_kernels()
     exercise_opacity_field()
     rastered = raster.wait()

@@ -30,9 +30,9 @@ def fast_preset() -> TrainConfig:
 
     Sized by held-out error against training size (docs/method.md): a larger Gaussian budget bought no
     held-out PSNR, steps bought SOS. So the plan is a guide: a scene opaque early ends early, one still
-    gaining SOS trains on (stopping.py), the budget follows the stone's size on screen (DensifyConfig.per_object_pixel), colour is
-    written at the lowest SH degree its held-out views need (sh_degree.py), and training starts coarse and
-    moves up once that stops paying (resolution.py).
+    gaining SOS trains on (stopping.py), the budget follows the stone's size on screen
+    (DensifyConfig.per_object_pixel), colour is written at the lowest SH degree its held-out views need
+    (sh_degree.py), and training starts coarse and moves up once that stops paying (resolution.py).
     """
     return TrainConfig(
         steps=2_500,
