@@ -29,6 +29,19 @@ function nextFrames(count) {
   });
 }
 
+// Spark sorts splats in a worker and draws what the last finished sort holds: nothing at first, and
+// a splat already taken out of the scene until the next sort lands. On a loaded machine a sort takes
+// longer than any fixed frame count, so wait for one to finish, then for `count` frames. Past
+// `timeoutMs` it stops waiting and draws what it has, so a page never hangs on a sort.
+function sortedFrames(spark, splatShown, count, timeoutMs = 60000) {
+  const deadline = performance.now() + timeoutMs;
+  const sorted = () => !spark || (!spark.sorting && !spark.sortDirty && (spark.activeSplats > 0 || !splatShown()));
+  return new Promise((resolve) => {
+    const step = () => (sorted() || performance.now() > deadline ? resolve() : requestAnimationFrame(step));
+    requestAnimationFrame(step);
+  }).then(() => nextFrames(count));
+}
+
 // Render an asset into `container`. opts: splat {bytes, type} or null; glb (mesh.glb, or a
 // splat.glb shown as the POINTS a viewer without KHR_gaussian_splatting draws) or null;
 // camera {position, target, fovY} in the glTF frame; width, height; interactive (orbit controls).
@@ -47,8 +60,10 @@ export async function render(container, opts) {
   camera.lookAt(new THREE.Vector3().fromArray(cam.target));
   scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 2.0));
   const parts = {};
+  let spark = null;
   if (opts.splat) {
-    scene.add(new SparkRenderer({ renderer }));
+    spark = Object.assign(new SparkRenderer({ renderer }), opts.spark); // opts.spark: SparkRenderer fields
+    scene.add(spark);
     const splat = new SplatMesh({ fileBytes: opts.splat.bytes, fileType: opts.splat.type });
     splat.quaternion.copy(PLY_TO_GLTF);
     scene.add(splat);
@@ -75,7 +90,8 @@ export async function render(container, opts) {
     if (controls) controls.update();
     renderer.render(scene, camera);
   });
-  await nextFrames(opts.settleFrames ?? 12);
+  const splatShown = () => scene.children.includes(parts.splat);
+  await sortedFrames(spark, splatShown, opts.settleFrames ?? 3);
   if (!opts.interactive) renderer.setAnimationLoop(null); // a still: stop drawing once settled
   return {
     show(name, visible) {
@@ -84,7 +100,7 @@ export async function render(container, opts) {
       if (parts[name] && !visible) scene.remove(parts[name]);
     },
     canvas: renderer.domElement,
-    settle: nextFrames, // resolves after that many more frames have been drawn
+    settle: (count) => sortedFrames(spark, splatShown, count), // resolves once drawn as it now stands
     dispose() {
       renderer.setAnimationLoop(null);
       renderer.dispose();
