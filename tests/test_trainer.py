@@ -339,22 +339,27 @@ def test_the_extension_decision_reads_the_last_two_evaluations():
     assert extension_decision(ExtendConfig(), evals, 0, 500)["reason"] == "extension off"
 
 
-def test_the_early_finish_needs_the_ngs_phases_over_and_both_held_out_figures_past_their_marks():
-    cfg = ExtendConfig(finish_sos=0.99, psnr_target_db=40.0)
-    opaque = {"step": 2000, "psnr": 48.4, "sos": 0.995}
+def test_the_early_finish_needs_the_ngs_phases_over_and_every_held_out_figure_past_its_mark():
+    cfg = ExtendConfig(finish_sos=0.95, psnr_target_db=40.0)
+    # the demo scan at step 2,000: SOS still rises towards 1, but the worst view leaks 1e-4 px of infill
+    opaque = {"step": 2000, "psnr": 48.3, "sos": 0.989, "leak_px": 1.2e-4}
     decision = early_finish_decision(cfg, [opaque], phases_over=True)
     assert decision["finished_early"] and decision["step"] == 2000 and not decision["extend"]
     assert early_finish_decision(cfg, [opaque], phases_over=False) is None  # the infill may still change
-    assert early_finish_decision(cfg, [{**opaque, "sos": 0.96}], True) is None  # past the gate, not yet opaque
+    assert early_finish_decision(cfg, [{**opaque, "sos": 0.94}], True) is None  # below the SOS target
+    # its step 1,750: the mean SOS is past the target, but one view still shows 0.003 px of green
+    assert early_finish_decision(cfg, [{**opaque, "sos": 0.979, "leak_px": 3.1e-3}], True) is None
     assert early_finish_decision(cfg, [{**opaque, "psnr": 35.0}], True) is None  # the photos still improve visibly
-    assert early_finish_decision(cfg, [{**opaque, "sos": None}], True) is None  # no infill, no SOS
+    assert early_finish_decision(cfg, [{**opaque, "sos": None, "leak_px": None}], True) is None  # no infill
+    assert early_finish_decision(cfg, [{k: v for k, v in opaque.items() if k != "leak_px"}], True) is None  # older run
     assert early_finish_decision(cfg, [{**opaque, "psnr": math.nan}], True) is None  # no held-out views
     assert early_finish_decision(ExtendConfig(), [opaque], True) is None  # off unless the preset asks
 
 
 def test_a_run_opaque_before_its_plan_ends_stops_at_that_evaluation_and_stays_stopped_when_resumed(scan, tmp_path):
     scene = load_scene(scan[0])
-    passes = ExtendConfig(finish_sos=0.0, psnr_target_db=-math.inf)  # every evaluation after the freeze passes
+    # every evaluation after the freeze passes
+    passes = ExtendConfig(finish_sos=0.0, psnr_target_db=-math.inf, finish_max_leak_px=math.inf)
     cfg = replace(TINY, eval_every=10, extend=passes)
     trainer = Trainer(scene, cfg, tmp_path / "early")
     report = trainer.run()

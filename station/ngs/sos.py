@@ -77,12 +77,23 @@ def view_transmittance(sos_scene: dict[str, torch.Tensor], view: View, backend: 
     return float(sos_rgb[..., 1].sum() / max(float(mask.sum()), EPS)), sos_rgb[..., 1], mask
 
 
-def held_out_sos(surface: dict[str, torch.Tensor], infill: Infill, views: list[View], backend: str = "auto") -> float | None:
-    """Mean SOS of activated surface parameters over `views`; None when there is no infill to hide."""
+def held_out_sos(surface: dict[str, torch.Tensor], infill: Infill, views: list[View], backend: str = "auto"
+                 ) -> tuple[float, float] | None:
+    """Mean SOS of activated surface parameters over `views`, and the most infill any one view shows: its
+    summed green, in pixels' worth of full green. None when there is no infill to hide.
+
+    The mean SOS is the gate's figure; the leak says whether what is left could be seen at all, in
+    whichever view it is.
+    """
     if not views or len(infill) == 0:
         return None
     scene = sos_colours(surface, infill.gaussians(1.0))
-    return float(np.mean([sos_of_transmittance(view_transmittance(scene, view, backend)[0]) for view in views]))
+    scores, leak_px = [], 0.0
+    for view in views:
+        transmittance, green, _ = view_transmittance(scene, view, backend)
+        scores.append(sos_of_transmittance(transmittance))
+        leak_px = max(leak_px, float(green.sum()))
+    return float(np.mean(scores)), leak_px
 
 
 def evaluate(surface: Gaussians, infill: Infill, views: list[View], out_dir: Path | None = None,

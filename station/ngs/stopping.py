@@ -3,11 +3,11 @@
 The NGS phases are fractions of a planned step count, so the plan has to be fixed up front. What a
 scene needs shows only as it trains: a small stone on a softbox is opaque well before the fast
 preset's 2,500 steps, a larger or shinier one is not yet opaque at the end. So once the NGS phases
-are over, a run whose held-out SOS and PSNR are both past where more training could show in the
-asset ends at that evaluation; and after the plan, training goes on in blocks of `eval_every` steps
-while SOS is below its target and still rising, or while held-out PSNR still rises clearly and is
-below its own target, up to a cap. Every decision, with the figures behind it, is kept in
-train_metrics.json.
+are over, a run whose held-out SOS and PSNR are both at their targets, and whose infill shows through
+in no held-out view by half an 8-bit level even on one pixel, ends at that evaluation; and after the
+plan, training goes on in blocks of `eval_every` steps while SOS is below its target and still
+rising, or while held-out PSNR still rises clearly and is below its own target, up to a cap. Every
+decision, with the figures behind it, is kept in train_metrics.json.
 """
 
 from __future__ import annotations
@@ -26,22 +26,26 @@ class ExtendConfig:
     # Per block. Held-out PSNR wanders between evaluations once it has converged, so only a clear rise counts.
     min_psnr_gain_db: float = 0.25
     psnr_target_db: float = 40.0  # no extension for PSNR above this: further gains are not visible in the asset
-    # End before the plan once the NGS phases are over and held-out SOS is at least this with PSNR at its
-    # target: the surface is opaque from every held-out view. None: always train the whole plan.
+    # End before the plan once the NGS phases are over, held-out SOS is at least this, PSNR is at its target and
+    # no held-out view shows more than `finish_max_leak_px` of the infill. None: always train the whole plan.
     finish_sos: float | None = None
+    # Summed green of the infill showing through, in pixels' worth of full green: half of one 8-bit level even
+    # if it all fell on one pixel, so nothing of it can show in the asset. SOS, a log, still rises long after.
+    finish_max_leak_px: float = 0.5 / 255
 
 
 def early_finish_decision(cfg: ExtendConfig, evals: list[dict], phases_over: bool) -> dict | None:
     """The decision to end the run at the last held-out evaluation, before its plan; None to train on."""
     last = evals[-1] if evals else {}
-    sos, psnr = last.get("sos"), last.get("psnr")
-    if cfg.finish_sos is None or not phases_over or sos is None or psnr is None:
+    sos, psnr, leak_px = last.get("sos"), last.get("psnr"), last.get("leak_px")
+    if cfg.finish_sos is None or not phases_over or sos is None or psnr is None or leak_px is None:
         return None
-    if sos < cfg.finish_sos or not psnr >= cfg.psnr_target_db:
+    if sos < cfg.finish_sos or not psnr >= cfg.psnr_target_db or leak_px > cfg.finish_max_leak_px:
         return None
     return {"step": last.get("step"), "extend": False, "finished_early": True,
-            "reason": f"SOS {sos:.3f} reached {cfg.finish_sos:g} and PSNR {psnr:.1f} dB is above "
-                      f"{cfg.psnr_target_db:g} after the NGS phases: the rest of the plan would not show in the asset"}
+            "reason": f"SOS {sos:.3f} reached {cfg.finish_sos:g}, PSNR {psnr:.1f} dB is above {cfg.psnr_target_db:g} "
+                      f"and no held-out view shows more than {leak_px:.2g} px of the infill after the NGS phases: "
+                      "the rest of the plan would not show in the asset"}
 
 
 def extension_decision(cfg: ExtendConfig, evals: list[dict], extra_steps_so_far: int, block: int) -> dict:
