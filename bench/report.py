@@ -118,10 +118,20 @@ def plans_section(name: str, data: dict) -> Section:
              num(data["against_peer"][run]["time_ratio"], 2), num(r["psnr"], 2), num(r["sos"]), sos_at_plan(r),
              r["extensions"][-1]["reason"] if r["extensions"] else ""]
             for run, r in data["methods"].items()]
-    lines = [f"Scan: {data['scan']}; {data['preset']} preset, extensions on; training seed {data['seed']}. "
+    finish = "early finish on" if data.get("early_finish", True) else "early finish off"
+    lines = [f"Scan: {data['scan']}; {data['preset']} preset, extensions on, {finish}; training seed {data['seed']}. "
              f"Peer: {data['peer']}. PSNR and SOS on the held-out views, each run against its own infill.", ""]
-    return lines + table(["run", "steps (planned)", "train s", "time / peer", "PSNR dB", "SOS", "SOS at the plan",
-                          "why it stopped"], rows), {}
+    lines += table(["run", "steps (planned)", "train s", "time / peer", "PSNR dB", "SOS", "SOS at the plan",
+                    "why it stopped"], rows)
+    for run, r in data["methods"].items():
+        if any("leak_px" in point for point in r["held_out_curve"]):
+            lines += [f"{run}, held-out figures as it trained; leak: the most infill any held-out view shows, in "
+                      "pixels' worth of full green (the early finish needs it below 1/510).", ""]
+            lines += table(["step", "s", "PSNR dB", "SOS", "leak px"],
+                           [[num(p["step"]), num(p["seconds"], 0), num(p["psnr"], 2), num(p.get("sos")),
+                             f"{p['leak_px']:.2g}" if p.get("leak_px") is not None else ""]
+                            for p in r["held_out_curve"]])
+    return lines, {}
 
 
 def masks_section(name: str, data: dict) -> Section:
