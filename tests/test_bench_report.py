@@ -27,7 +27,7 @@ def results_copy(tmp_path: Path) -> Path:
     copy.mkdir(parents=True)
     for path in RESULTS.glob("*.json"):
         shutil.copy(path, copy)
-    for pattern in ("ngs*.svg", "real_*.svg", "plans.svg"):  # drawn by their bench scripts, not by the report
+    for pattern in ("ngs*.svg", "real_*.svg", "plans*.svg"):  # drawn by their bench scripts, not by the report
         for path in RESULTS.glob(pattern):
             shutil.copy(path, copy)
     return copy
