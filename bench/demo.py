@@ -72,8 +72,17 @@ def run_demo(tree: Path, work: Path, cache: Path) -> dict:
     times = stage_times(done.stderr)
     return {"exit": done.returncode, "wall_s": round(wall, 1),
             "stages_s": times if "train" in times else times | stage_times_from_files(work / "demo" / "scan"),
-            "gate_passed": verdict.get("pass"), "gate": gate,
+            "gate_passed": verdict.get("pass"), "gate": gate, **steps_trained(work / "demo" / "scan"),
             "load_1min_before": round(load_before[0], 2), "load_1min_after": round(os.getloadavg()[0], 2)}
+
+
+def steps_trained(scan: Path) -> dict[str, int]:
+    """The steps the demo trained and the steps its plan had (an early finish or an extension tells them apart)."""
+    metrics = scan / "model" / "train_metrics.json"
+    if not metrics.is_file():
+        return {}
+    train = json.loads(metrics.read_text())
+    return {"train_steps": train["report"]["steps"], "planned_steps": train["planned_steps"]}
 
 
 def main() -> None:
@@ -108,6 +117,8 @@ def main() -> None:
         table.add_column(f"{name} ({runs[name]['revision']})")
     for stage in names:
         table.add_row(stage, *(str(run["stages_s"].get(stage, "")) for run in runs.values()))
+    table.add_row("steps trained (planned)", *(f"{run.get('train_steps', '')} ({run.get('planned_steps', '')})"
+                                               for run in runs.values()))
     for key in ("PSNR", "SOS"):
         table.add_row(key, *(str(round(run["gate"].get(key) or 0, 3)) for run in runs.values()))
     table.add_row("gate passed", *(str(run["gate_passed"]) for run in runs.values()))

@@ -308,6 +308,9 @@ def demo_section(name: str, data: dict) -> Section:
                     key=lambda stage: order.index(stage) if stage in order else len(order))
     rows = [[stage, *(num(run["stages_s"].get(stage), 1) if stage in run["stages_s"] else "–" for run in runs.values())]
             for stage in stages]
+    if any("train_steps" in run for run in runs.values()):
+        rows.append(["steps trained (planned)", *(f"{num(run['train_steps'])} ({num(run['planned_steps'])})"
+                                                  if "train_steps" in run else "–" for run in runs.values())])
     for key in ("PSNR", "SOS"):
         rows.append([key, *(num(run["gate"].get(key)) for run in runs.values())])
     rows.append(["gate passed", *(num(run["gate_passed"]) for run in runs.values())])
