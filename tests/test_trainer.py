@@ -365,6 +365,7 @@ def test_a_run_opaque_before_its_plan_ends_stops_at_that_evaluation_and_stays_st
     report = trainer.run()
     assert trainer.ngs.freeze_step <= report.steps == 20 < TINY.steps  # not at step 10: the infill was not final
     assert [d.get("finished_early") for d in trainer.extensions] == [True]
+    assert trainer.losses[-1]["step"] == 20 and report.final_loss == trainer.losses[-1]["loss"]  # its last step's
     again = Trainer(scene, cfg, tmp_path / "early").run()
     assert again.resumed_from == 20 and again.steps == 20
 

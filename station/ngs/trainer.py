@@ -251,16 +251,16 @@ class Trainer:
             last = self.step == self.target_steps
             if self.level_downscale > 1 and self.step % self.cfg.resolution.check_steps(self.cfg.steps) == 0:
                 self._check_resolution()
-            if self.step % 100 == 0 or last:
-                self.losses.append({"step": self.step, "seconds": round(self.seconds, 2), **terms})
-                if progress:
-                    progress(self.step, terms)
             if self.cfg.eval_every and (self.step % self.cfg.eval_every == 0 or last):
                 self.evals.append({"step": self.step, "seconds": round(self.seconds, 2), **self.held_out()})
                 if last:
                     self._decide_extension()
                 else:
                     last = self._finish_early()
+            if self.step % 100 == 0 or last:  # after the evaluation: an early finish makes this step the last
+                self.losses.append({"step": self.step, "seconds": round(self.seconds, 2), **terms})
+                if progress:
+                    progress(self.step, terms)
             if self.step % self.cfg.checkpoint_every == 0 or last:
                 self.save_checkpoint()
         return TrainReport(
