@@ -16,7 +16,7 @@ from station.ngs.gaussians import Gaussians
 from station.ngs.infill import Infill, InfillConfig, build_infill
 from station.ngs.inria_ply import read_inria_ply
 from station.ngs.raster import rasterization
-from station.ngs.sos import evaluate, scan_infill, sos_of_transmittance
+from station.ngs.sos import evaluate, held_out_sos, scan_infill, sos_of_transmittance
 from station.scanfolder import ScanFolder
 from test_ngs_infill import ring_cameras, sphere_surface
 
@@ -69,6 +69,21 @@ def test_sos_falls_as_the_surface_opacity_drops(scene):
     scores = [evaluate(sphere_model(a), infill, views)["sos"] for a in (0.99, 0.8, 0.5, 0.2)]
     assert all(a > b for a, b in zip(scores, scores[1:])), scores
     assert scores[-1] < 0.3
+
+
+def test_training_scores_the_same_sos_as_export_and_the_worst_views_leak_in_pixels_of_green(scene):
+    views, infill = scene
+    for opacity in (0.99, 0.3):
+        model = sphere_model(opacity)
+        sos, leak_px = held_out_sos({k: v.detach() for k, v in model.activated().items()}, infill, views)
+        exported = evaluate(model, infill, views)
+        assert sos == pytest.approx(exported["sos"], abs=1e-9)
+        # a view's summed green is its transmittance times its mask's area; the leak is the largest of them
+        green = [row["transmittance"] * float(v.mask.sum()) for row, v in zip(exported["views"], views)]
+        assert leak_px == pytest.approx(max(green), rel=1e-5, abs=1e-9)
+        assert (leak_px < 1 / 510) == (opacity == 0.99)  # an opaque sphere shows nothing; a 30% one shows its core
+    nothing_to_hide = infill.select(torch.zeros(len(infill), dtype=torch.bool))
+    assert held_out_sos({}, nothing_to_hide, views) == (None, None)
 
 
 def test_leaking_infill_lowers_psnr_star_below_psnr(scene):

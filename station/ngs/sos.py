@@ -78,15 +78,15 @@ def view_transmittance(sos_scene: dict[str, torch.Tensor], view: View, backend: 
 
 
 def held_out_sos(surface: dict[str, torch.Tensor], infill: Infill, views: list[View], backend: str = "auto"
-                 ) -> tuple[float, float] | None:
+                 ) -> tuple[float | None, float | None]:
     """Mean SOS of activated surface parameters over `views`, and the most infill any one view shows: its
-    summed green, in pixels' worth of full green. None when there is no infill to hide.
+    summed green, in pixels' worth of full green. Both None when there is no infill to hide.
 
     The mean SOS is the gate's figure; the leak says whether what is left could be seen at all, in
     whichever view it is.
     """
     if not views or len(infill) == 0:
-        return None
+        return None, None
     scene = sos_colours(surface, infill.gaussians(1.0))
     scores, leak_px = [], 0.0
     for view in views:

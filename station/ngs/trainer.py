@@ -298,11 +298,10 @@ class Trainer:
         """Held-out PSNR, and SOS and the largest leak against the training infill once NGS has built one
         (else None)."""
         infill = self.ngs.infill if self.ngs else None
-        opacity = None
+        sos = leak_px = None
         if infill is not None:
             surface = {k: v.detach() for k, v in self.model.activated().items()}
-            opacity = held_out_sos(surface, infill, self.scene.test, self.cfg.backend)
-        sos, leak_px = opacity if opacity is not None else (None, None)
+            sos, leak_px = held_out_sos(surface, infill, self.scene.test, self.cfg.backend)
         return {"psnr": self.held_out_psnr(), "sos": sos, "leak_px": leak_px}
 
     def held_out_psnr(self, sh_degree: int | None = None) -> float:
