@@ -177,8 +177,7 @@ class SimPtpCamera:
     def class_request(self, request: int, data: bytes) -> bytes:
         """USB Still Image Class requests on endpoint 0; returns the IN data stage (empty for OUT)."""
         if request == REQUEST_CANCEL:
-            code, _tid = int.from_bytes(data[:2], "little"), int.from_bytes(data[2:6], "little")
-            if code == CANCEL_CODE:
+            if int.from_bytes(data[:2], "little") == CANCEL_CODE:  # then the transaction id, which any cancel ends
                 self._tx.clear()
                 self._rx.clear()
                 self._pending = None

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import ndimage
 from test_masks import iou, synthetic_pair
 
 from sim.rig import make_stone
@@ -44,6 +45,25 @@ def test_the_other_rings_hull_projects_onto_a_views_own_silhouette(rings) -> Non
     hull = carve_hull([c for c, _ in views], [m for _, m in views], INTRINSICS, CrossViewSettings())
     for c2w, truth in rings[40.0][::6]:
         assert iou(project_hull(hull, c2w, INTRINSICS), truth) >= 0.94  # a hull from 48 views: about a pixel out
+
+
+def test_a_hulls_silhouette_is_the_pixels_its_voxels_corner_points_land_in_with_the_holes_filled() -> None:
+    rng = np.random.default_rng(1)
+    hull = Hull(rng.normal(0.0, 0.02, (400, 3)), np.full(3, 0.004))
+    c2w = camera_to_turntable(30.0, 20.0, RIG)
+    w2c = np.linalg.inv(c2w)
+    corners = np.stack(np.meshgrid(*[[-0.25, 0.25]] * 3, indexing="ij"), -1).reshape(-1, 3) * hull.voxel
+    cam = (hull.surface[:, None] + corners).reshape(-1, 3) @ w2c[:3, :3].T + w2c[:3, 3]
+    uvw = cam @ INTRINSICS.matrix().T
+    u, v = np.floor(uvw[:, 0] / uvw[:, 2]).astype(int), np.floor(uvw[:, 1] / uvw[:, 2]).astype(int)
+    assert (cam[:, 2] > 0).all() and u.min() >= 0 and v.min() >= 0 and u.max() < RIG.width and v.max() < RIG.height
+    drawn = np.zeros((INTRINSICS.height, INTRINSICS.width), dtype=bool)
+    drawn[v, u] = True
+    silhouette = project_hull(hull, c2w, INTRINSICS)
+    assert (silhouette & ~drawn).any()  # scattered points leave holes to fill ...
+    np.testing.assert_array_equal(silhouette, ndimage.binary_fill_holes(drawn))  # ... and nothing else is added
+    behind = Hull(hull.surface - 3.0 * c2w[:3, 2], hull.voxel)  # moved back along the optical axis, behind the camera
+    assert not project_hull(behind, c2w, INTRINSICS).any()
 
 
 def test_the_hull_stops_at_the_plate(rings) -> None:

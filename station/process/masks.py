@@ -254,7 +254,15 @@ def largest_component_filled(mask: np.ndarray) -> np.ndarray:
     if count <= 1:
         return np.zeros_like(mask, dtype=bool)
     biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    return ndimage.binary_fill_holes(labels == biggest)
+    return fill_holes(labels == biggest)
+
+
+def fill_holes(mask: np.ndarray) -> np.ndarray:
+    """`mask` [H, W] with every hole filled: scipy's binary_fill_holes to the pixel (background 4-connected), as one
+    OpenCV flood fill from outside the frame, a tenth of its time on a frame."""
+    flood = np.pad(mask, 1).astype(np.uint8)
+    cv2.floodFill(flood, None, (0, 0), 2, flags=4)
+    return flood[1:-1, 1:-1] != 2
 
 
 def shadow_field(log_ratio: np.ndarray, background: np.ndarray, sigma_px: float) -> np.ndarray:
