@@ -1,5 +1,6 @@
 """Test-wide set-up that must happen before any test module imports torch or numba."""
 
+import fcntl
 import hashlib
 import os
 import shutil
@@ -76,18 +77,26 @@ def pytest_configure(config: pytest.Config) -> None:
 
 @pytest.fixture(scope="session")
 def tiny_shot(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Path]:
-    """tiny_shot(stone): a finished 2 x 8 scan of `stone` at 160x120, shot once per worker for every
-    batch module that asks for it. It is shared: copy it (batch_support.copy_scans) before changing it.
+    """tiny_shot(stone): a finished 2 x 8 scan of `stone` at 160x120, shot once per test run for every batch
+    module that asks for it, by whichever worker asks first (the others wait for it). It is shared: copy it
+    (batch_support.copy_scans) before changing it.
 
     The stages' kernels are in this worker's numba cache already (pytest_configure): otherwise each stage
     process a batch starts before the first has saved them compiles them again."""
     from batch_support import shoot
 
-    shots: dict[str, Path] = {}
+    base = tmp_path_factory.getbasetemp()
+    shots = (base.parent if _WORKER else base) / "tiny-shots"  # the run's own temp root, which its workers share
+    shots.mkdir(exist_ok=True)
 
     def shot(stone: str) -> Path:
-        if stone not in shots:
-            shots[stone] = shoot(tmp_path_factory.mktemp("tiny-shot") / f"stone{stone}", stone)
-        return shots[stone]
+        scan, done = shots / f"stone{stone}", shots / f"stone{stone}.done"
+        with open(shots / f"stone{stone}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not done.exists():
+                shutil.rmtree(scan, ignore_errors=True)  # a worker that died mid-shot
+                shoot(scan, stone)
+                done.touch()
+        return scan
 
     return shot
