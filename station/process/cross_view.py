@@ -41,7 +41,7 @@ from station.process.images_io import read_exr, read_mask_png
 from station.process.masks import fill_holes
 from station.formats.transforms import PinholeCamera
 from station.process.transforms import read_transforms
-from station.process.visual_hull import carve_grid, grid_points, surface_voxels, view_bounds
+from station.process.visual_hull import carve_grid, grid_points, pixel_of, surface_voxels, view_bounds
 from station.scanfolder import ScanFolder
 
 
@@ -123,17 +123,10 @@ def _draw_points(points, offsets, w2c, k, height, width):
     silhouette = np.zeros((height, width), dtype=np.bool_)
     for i in range(points.shape[0]):
         for o in range(offsets.shape[0]):
-            x, y, z = points[i, 0] + offsets[o, 0], points[i, 1] + offsets[o, 1], points[i, 2] + offsets[o, 2]
-            cz = w2c[2, 0] * x + w2c[2, 1] * y + w2c[2, 2] * z + w2c[2, 3]
-            if cz <= 1e-6:
-                continue
-            cx = w2c[0, 0] * x + w2c[0, 1] * y + w2c[0, 2] * z + w2c[0, 3]
-            cy = w2c[1, 0] * x + w2c[1, 1] * y + w2c[1, 2] * z + w2c[1, 3]
-            w = k[2, 0] * cx + k[2, 1] * cy + k[2, 2] * cz
-            u = np.floor((k[0, 0] * cx + k[0, 1] * cy + k[0, 2] * cz) / w)
-            v = np.floor((k[1, 0] * cx + k[1, 1] * cy + k[1, 2] * cz) / w)
-            if 0 <= u < width and 0 <= v < height:
-                silhouette[int(v), int(u)] = True
+            u, v, in_front = pixel_of(w2c, k, points[i, 0] + offsets[o, 0], points[i, 1] + offsets[o, 1],
+                                      points[i, 2] + offsets[o, 2])
+            if in_front and 0 <= u < width and 0 <= v < height:
+                silhouette[v, u] = True
     return silhouette
 
 

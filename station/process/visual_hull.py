@@ -87,6 +87,19 @@ def _stack_padded(arrays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return out, sizes
 
 
+@njit(inline="always")
+def pixel_of(w2c, k, x, y, z):
+    """(column, row, in front): the pixel the point (x, y, z) lands in through the camera `w2c` [3, 4] and `k`."""
+    cz = w2c[2, 0] * x + w2c[2, 1] * y + w2c[2, 2] * z + w2c[2, 3]
+    if cz <= 1e-6:
+        return 0, 0, False
+    cx = w2c[0, 0] * x + w2c[0, 1] * y + w2c[0, 2] * z + w2c[0, 3]
+    cy = w2c[1, 0] * x + w2c[1, 1] * y + w2c[1, 2] * z + w2c[1, 3]
+    w = k[2, 0] * cx + k[2, 1] * cy + k[2, 2] * cz
+    column = math.floor((k[0, 0] * cx + k[0, 1] * cy + k[0, 2] * cz) / w)
+    return column, math.floor((k[1, 0] * cx + k[1, 1] * cy + k[1, 2] * cz) / w), True
+
+
 @njit(parallel=True, cache=True)
 def _carve(grid, w2cs, k, masks, sizes, images, with_colour, max_misses, min_seen):
     """Per voxel, the views in order until more than `max_misses` of those that see it call it background:
@@ -101,15 +114,9 @@ def _carve(grid, w2cs, k, masks, sizes, images, with_colour, max_misses, min_see
         r = g = b = 0.0
         hits = 0
         for v in range(views):
-            m = w2cs[v]
-            cz = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
-            if cz <= 1e-6:
+            u, row, in_front = pixel_of(w2cs[v], k, x, y, z)
+            if not in_front:
                 continue
-            cx = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
-            cy = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
-            w = k[2, 0] * cx + k[2, 1] * cy + k[2, 2] * cz
-            u = math.floor((k[0, 0] * cx + k[0, 1] * cy + k[0, 2] * cz) / w)
-            row = math.floor((k[1, 0] * cx + k[1, 1] * cy + k[1, 2] * cz) / w)
             if u < 0 or u >= sizes[v, 1] or row < 0 or row >= sizes[v, 0]:
                 continue  # a voxel outside the frame is not evidence against it
             seen += 1
