@@ -90,13 +90,12 @@ def tiny_shot(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Path]
     shots.mkdir(exist_ok=True)
 
     def shot(stone: str) -> Path:
-        scan, done = shots / f"stone{stone}", shots / f"stone{stone}.done"
+        scan, partial = shots / f"stone{stone}", shots / f"stone{stone}.partial"
         with open(shots / f"stone{stone}.lock", "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
-            if not done.exists():
-                shutil.rmtree(scan, ignore_errors=True)  # a worker that died mid-shot
-                shoot(scan, stone)
-                done.touch()
+            if not scan.exists():  # shot whole, then renamed: a worker that died mid-shot left only `partial`
+                shutil.rmtree(partial, ignore_errors=True)
+                shoot(partial, stone).rename(scan)
         return scan
 
     return shot
