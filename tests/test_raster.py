@@ -8,7 +8,7 @@ import torch
 
 from station.errors import BadInputError
 from station.ngs import _kernels
-from station.ngs.raster import median_depth, pixel_contributors, rasterization, set_num_threads
+from station.ngs.raster import median_depth, rasterization, seen_in_front, set_num_threads
 from station.ngs.raster_reference import project
 
 
@@ -177,31 +177,29 @@ def test_meta_carries_means2d_radii_depths_and_size():
 
 
 @pytest.mark.parametrize("backend", ["cpu", "torch"])
-def test_pixel_contributors_recomposite_to_the_rendered_alpha(backend):
+def test_seen_in_front_marks_what_some_pixel_sees_nearer_than_its_limit(backend):
     width, height = 48, 40
-    scene = random_scene(150, width, height, seed=5, sh_degree=None)
-    scene["opacities"] = scene["opacities"].clamp(min=0.6)
-    args = (scene["means"], scene["quats"], scene["scales"], scene["opacities"])
-    offsets, ids = pixel_contributors(*args, scene["viewmats"][0], scene["Ks"][0], width, height, backend=backend)
-    _, alpha, meta = rasterization(*args, scene["colors"], scene["viewmats"][:1], scene["Ks"][:1], width, height,
-                                   backend=backend)
-    assert offsets.shape == (width * height + 1,) and offsets[-1] == ids.numel() > 0
-    pix = torch.repeat_interleave(torch.arange(width * height), offsets.diff())          # [M]
-    px, py = (pix % width).double() + 0.5, (pix // width).double() + 0.5
-    m2 = meta["means2d"][0].detach().double()[ids]
-    _, conics, _, _ = project(*(a.double() for a in args[:3]), scene["viewmats"][:1].double(),
-                              scene["Ks"][:1].double(), width, height, 0.01, 1e10)
-    cn = conics[0][ids]
-    dx, dy = m2[:, 0] - px, m2[:, 1] - py
-    sigma = 0.5 * (cn[:, 0] * dx * dx + cn[:, 2] * dy * dy) + cn[:, 1] * dx * dy
-    a = torch.clamp_max(scene["opacities"].double()[ids] * torch.exp(-sigma), 0.99)
-    assert (a >= 1 / 255 - 1e-6).all()
-    log_t = torch.zeros(width * height, dtype=torch.float64).index_add_(0, pix, torch.log1p(-a))
-    torch.testing.assert_close(1 - log_t.exp(), alpha[0, ..., 0].reshape(-1).double(), atol=2e-5, rtol=0)
-    # front to back: depths along each pixel's list never decrease
-    depths = meta["depths"][0][ids]
-    same_pixel = pix[1:] == pix[:-1]
-    assert (depths[1:][same_pixel] >= depths[:-1][same_pixel]).all()
+    scene = random_scene(150, width, height, seed=5, sh_degree=None, dtype=torch.float64)
+    args = (scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["viewmats"][0],
+            scene["Ks"][0], width, height)
+    m2, conics, depths, radii = project(*(scene[k] for k in ("means", "quats", "scales", "viewmats", "Ks")),
+                                        width, height, 0.01, 1e10)
+    ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    dx = m2[0, :, 0] - (xs.reshape(-1, 1) + 0.5)                                      # [P, N]
+    dy = m2[0, :, 1] - (ys.reshape(-1, 1) + 0.5)
+    c = conics[0]
+    sigma = 0.5 * (c[:, 0] * dx * dx + c[:, 2] * dy * dy) + c[:, 1] * dx * dy
+    alpha = torch.clamp_max(scene["opacities"] * torch.exp(-sigma), 0.99)
+    # the tiles binning gives a Gaussian hold every pixel it reaches here: its 3-sigma radius covers them
+    seen = (sigma >= 0) & (alpha >= 1 / 255) & (radii[0] > 0)                           # [P, N]
+    limit = 3.0 + 2.0 * torch.rand(height, width, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    expected = (seen & (depths[0] < limit.reshape(-1, 1))).any(dim=0)
+    marked = seen_in_front(*args, limit, backend=backend)
+    assert 0 < expected.sum() < seen.any(dim=0).sum()  # the limits hide some Gaussians and not others
+    assert marked.tolist() == expected.tolist()
+    assert seen_in_front(*args, torch.full((height, width), math.inf), backend=backend).tolist() == seen.any(0).tolist()
+    assert not seen_in_front(*args, torch.zeros(height, width), backend=backend).any()
+
 
 
 def test_median_depth_agrees_with_the_reference_and_is_infinite_where_alpha_stays_below_half():
@@ -244,13 +242,20 @@ def test_median_depth_sits_on_the_first_opaque_layer_where_expected_depth_does_n
     assert (colors[0, ..., 3][centre] > 4.01).all()  # a fifth of the way to the back layer
 
 
-def test_cpu_and_reference_listings_are_identical():
-    scene = random_scene(100, 40, 32, seed=6, sh_degree=None)
+def test_cpu_and_reference_seen_in_front_agree_in_float32():
+    scene = random_scene(300, 40, 32, seed=6, sh_degree=None)
+    limit = 3.0 + 2.0 * torch.rand(32, 40, generator=torch.Generator().manual_seed(2))
     args = (scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["viewmats"][0],
-            scene["Ks"][0], 40, 32)
-    cpu = pixel_contributors(*args, backend="cpu")
-    ref = pixel_contributors(*args, backend="torch")
-    assert torch.equal(cpu[0], ref[0]) and torch.equal(cpu[1], ref[1])
+            scene["Ks"][0], 40, 32, limit)
+    cpu, ref = seen_in_front(*args, backend="cpu"), seen_in_front(*args, backend="torch")
+    assert cpu.any() and not cpu.all() and torch.equal(cpu, ref)
+
+
+def test_seen_in_front_refuses_a_depth_map_of_the_wrong_size():
+    scene = random_scene(5, 16, 16, sh_degree=None)
+    with pytest.raises(BadInputError, match=r"depth must be a \[16, 16\] tensor"):
+        seen_in_front(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["viewmats"][0],
+                      scene["Ks"][0], 16, 16, torch.zeros(16 * 16))
 
 
 def test_gsplat_backend_on_cpu_tensors_is_refused():

@@ -9,7 +9,7 @@ import torch
 from station.errors import BadInputError
 from station.ngs import _kernels, _project_kernels
 from station.ngs.conventions import TILE
-from station.ngs.raster import pixel_contributors, rasterization
+from station.ngs.raster import rasterization, seen_in_front
 
 BACKENDS = ["cpu", "torch"]
 
@@ -88,10 +88,11 @@ def test_alpha_saturates_at_099_and_compositing_stops_before_t_reaches_1e4(backe
                                atol=1e-6, rtol=0)
     torch.testing.assert_close(img[centre].double(), torch.tensor([0.99, 0.01 * a2, 0.0], dtype=torch.float64),
                                atol=1e-6, rtol=0)
+    # depth pruning asks what lies in front at all: the third counts there although compositing stops before it
     viewmats, Ks = camera(16, 16)
-    offsets, ids = pixel_contributors(*params[:4], viewmats[0], Ks[0], 16, 16, backend=backend)
-    pix = 8 * 16 + 8
-    assert ids[offsets[pix]:offsets[pix + 1]].tolist() == [0, 1]
+    for limit, seen in ((3.5, [True, True, True]), (2.75, [True, True, False])):
+        depth = torch.full((16, 16), limit)
+        assert seen_in_front(*params[:4], viewmats[0], Ks[0], 16, 16, depth, backend=backend).tolist() == seen
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -1,4 +1,4 @@
-"""numba kernels of the CPU rasteriser: tile binning, forward compositing, backward, per-pixel listings.
+"""numba kernels of the CPU rasteriser: tile binning, forward compositing, backward, the depth-pruning query.
 
 Layout follows gsplat: every (tile, Gaussian) intersection sits in a per-tile, depth-sorted list. Tiles
 run in parallel (prange). A tile's pixels are stored in 8-pixel-wide strips, each row-major, so the rows
@@ -607,51 +607,41 @@ def reduce_per_gaussian(slot_grads, gauss_offsets, gauss_slots):
     return out
 
 
+@njit(cache=True)
+def _pixel_range(m, ext, lo, hi):
+    """Pixels [i0, i1) of [lo, hi) whose centres lie within ext of m (ext may be BIG)."""
+    first = min(max(m - ext - 0.5, lo - 1.0), hi + 1.0)
+    last = min(max(m + ext - 0.5, lo - 1.0), hi + 1.0)
+    return max(int(math.ceil(first)), lo), max(min(int(math.floor(last)) + 1, hi), lo)
+
+
 @njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
-def _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, taken, width, height, n_proc, fast,
-                       counts, cursor, ids, fill):
-    """One pass over every pixel's contributors: count them (fill=False) or write their ids (fill=True)."""
-    dt = means2d.dtype
+def seen_in_front(means2d, conics, opacities, radii, depths, width, height, limit):
+    """Per Gaussian, whether some pixel sees it (alpha >= 1/255 inside its tiles: compositing's skip rule) at a
+    depth below that pixel's `limit` [H, W] -> [N] bool. No stop rule: what lies in front counts even where other
+    Gaussians have used up the transmittance. Walks each Gaussian's own footprint: no binning, no sort."""
+    n = means2d.shape[0]
     tw = (width + TILE - 1) // TILE
-    for t in prange(tile_offsets.shape[0] - 1):
-        start = tile_offsets[t]
-        px, py, inside = _tile_pixels(t, tw, width, height, dt)
-        alpha = np.empty(TILE_PIX, dt)
-        expo = np.empty(TILE_PIX, dt)
-        ibuf = np.empty(TILE_PIX, np.int32)
-        fbuf = ibuf.view(np.float32)
-        kmax = 0
-        for p in range(TILE_PIX):
-            if inside[p]:
-                kmax = max(kmax, n_proc[int(py[p]), int(px[p])])
-        for k in range(kmax):
-            i = start + k
-            g = isect_gid[i]
-            for s in range(STRIPS):
-                p0, p1 = _taken_span(taken, i, s)
-                if p0 >= p1:
-                    continue
-                _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
-                        px, py, alpha, expo, fast, ibuf, fbuf, p0, p1)
-                for p in range(p0, p1):
-                    if inside[p] and alpha[p] >= ALPHA_MIN and k < n_proc[int(py[p]), int(px[p])]:
-                        pix = int(py[p]) * width + int(px[p])
-                        if fill:
-                            ids[cursor[pix]] = g
-                            cursor[pix] += 1
-                        else:
-                            counts[pix + 1] += 1
-
-
-def list_contributors(means2d, conics, opacities, tile_offsets, isect_gid, taken, width, height, n_proc, fast):
-    """Per pixel (row-major), the Gaussian ids composited front to back -> offsets [H*W+1], ids [M]; n_proc and
-    taken from `rasterize_fwd`."""
-    counts = np.zeros(height * width + 1, np.int64)
-    empty = np.zeros(0, np.int64)
-    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, taken, width, height, n_proc, fast,
-                       counts, empty, empty, False)
-    offsets = np.cumsum(counts)
-    ids = np.empty(offsets[-1], np.int64)
-    _walk_contributors(means2d, conics, opacities, tile_offsets, isect_gid, taken, width, height, n_proc, fast,
-                       counts, offsets[:-1].copy(), ids, True)
-    return offsets, ids
+    th = (height + TILE - 1) // TILE
+    out = np.zeros(n, np.bool_)
+    for g in prange(n):
+        sig_max = _sig_max(opacities[g])
+        if radii[g] <= 0 or sig_max < 0.0:
+            continue
+        u, v = float(means2d[g, 0]), float(means2d[g, 1])
+        ca, cb, cc = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+        op, z = float(opacities[g]), depths[g]
+        tx0, ty0, tx1, ty1 = _tile_rect(u, v, float(radii[g]), tw, th)
+        x0, x1 = _pixel_range(u, _extent(ca, cc, ca * cc - cb * cb, sig_max), tx0 * TILE, min(tx1 * TILE, width))
+        y0, y1 = _pixel_range(v, _extent(cc, ca, ca * cc - cb * cb, sig_max), ty0 * TILE, min(ty1 * TILE, height))
+        for y in range(y0, y1):
+            dy = v - (y + 0.5)
+            for x in range(x0, x1):
+                dx = u - (x + 0.5)
+                sig = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                if sig >= 0.0 and z < limit[y, x] and min(ALPHA_MAX, op * math.exp(-sig)) >= ALPHA_MIN:
+                    out[g] = True
+                    break
+            if out[g]:
+                break
+    return out

@@ -17,7 +17,7 @@ from scipy.ndimage import binary_erosion
 from scipy.spatial import ConvexHull, QhullError
 
 from station.errors import BadInputError
-from station.ngs.raster import median_depth, pixel_contributors, rasterization
+from station.ngs.raster import median_depth, rasterization, seen_in_front
 
 RGBCMY = torch.tensor(
     [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 1.0, 1.0], [1.0, 0, 1.0], [1.0, 1.0, 0]]
@@ -138,7 +138,7 @@ def candidate_cells(covered: np.ndarray, origin: np.ndarray, h: float, planes: n
 
 
 def surface_depths(surface: dict[str, torch.Tensor], cameras: list[Camera], surface_alpha: float) -> list[torch.Tensor]:
-    """Per camera, the depth [H*W] where the surface starts: where its own accumulated alpha reaches
+    """Per camera, the depth [H, W] where the surface starts: where its own accumulated alpha reaches
     `surface_alpha`, or half the pixel's surface alpha where that is less.
 
     A still half-transparent surface keeps the noise behind most of its weight, which is the noise's job
@@ -150,27 +150,17 @@ def surface_depths(surface: dict[str, torch.Tensor], cameras: list[Camera], surf
         _, alpha, _ = rasterization(*args, torch.zeros_like(args[0]), cam.viewmat[None], cam.K[None], cam.width,
                                     cam.height)
         level = torch.clamp(0.5 * alpha[0, ..., 0], max=surface_alpha)
-        depths.append(median_depth(*args, cam.viewmat, cam.K, cam.width, cam.height, alpha_level=level).reshape(-1))
+        depths.append(median_depth(*args, cam.viewmat, cam.K, cam.width, cam.height, alpha_level=level))
     return depths
 
 
 def depth_prune_mask(noise: dict[str, torch.Tensor], cameras: list[Camera], depths: list[torch.Tensor]) -> torch.Tensor:
     """[M] bool: noise some view sees in front of the surface (`surface_depths` for these cameras), or where
     there is no surface."""
-    m = noise["means"].shape[0]
-    marked = torch.zeros(m, dtype=torch.bool, device=noise["means"].device)
-    if m == 0:
-        return marked
+    marked = torch.zeros(noise["means"].shape[0], dtype=torch.bool, device=noise["means"].device)
     for cam, surface_z in zip(cameras, depths):
-        surface_z = surface_z.to(marked.device)
-        offsets, ids = pixel_contributors(
-            noise["means"], noise["quats"], noise["scales"], noise["opacities"], cam.viewmat, cam.K, cam.width, cam.height
-        )  # [P+1], [E]
-        offsets, ids = offsets.to(marked.device), ids.to(marked.device)
-        pixel = torch.repeat_interleave(torch.arange(len(offsets) - 1, device=marked.device), offsets[1:] - offsets[:-1])
-        noise_z = noise["means"] @ cam.viewmat[2, :3].to(noise["means"]) + cam.viewmat[2, 3].to(noise["means"])  # [M]
-        in_front = noise_z[ids] < surface_z[pixel]
-        marked[ids[in_front]] = True
+        marked |= seen_in_front(noise["means"], noise["quats"], noise["scales"], noise["opacities"], cam.viewmat,
+                                cam.K, cam.width, cam.height, surface_z)
     return marked
 
 

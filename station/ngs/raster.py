@@ -1,4 +1,5 @@
-"""The one entry point for rendering Gaussians: `rasterization()` and the per-pixel `pixel_contributors()`.
+"""The one entry point for rendering Gaussians: `rasterization()`, and the forward-only `median_depth()` and
+`seen_in_front()`.
 
 Backends share gsplat's conventions (see `raster_reference`): "torch" is the dense plain-torch reference,
 "cpu" the tile-parallel numba kernels, "gsplat" the CUDA library (imported lazily; untested here, as no
@@ -296,16 +297,14 @@ def _one_camera(caller: str, means: Tensor, quats: Tensor, scales: Tensor, opaci
     return _resolve_backend(backend, means.device)
 
 
-def _cpu_binned(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
-                width: int, height: int, near_plane: float) -> tuple[np.ndarray, ...]:
-    """Project and bin for one camera with the numba kernels -> means2d, conics, depths, opacities, bins."""
+def _cpu_projected(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor,
+                   width: int, height: int, near_plane: float) -> tuple[np.ndarray, ...]:
+    """Project for one camera with the numba kernels -> means2d, conics, depths, radii, opacities."""
     gauss = [np.ascontiguousarray(_host(t)) for t in (means, quats, scales)]
     cams = [np.ascontiguousarray(_host(t[None])) for t in (viewmat, K, ref.camera_centres(viewmat[None])[0])]
     m2, conics, depths, radii, _ = _project_kernels.project_fwd(
         *gauss, np.zeros((means.shape[0], 1, 3), gauss[0].dtype), -1, *cams, width, height, near_plane, 1e10)
-    opac = np.ascontiguousarray(_host(opacities))
-    bins = _kernels.bin_gaussians(m2[0], conics[0], opac, radii[0], depths[0], width, height)
-    return m2[0], conics[0], depths[0], opac, bins
+    return m2[0], conics[0], depths[0], radii[0], np.ascontiguousarray(_host(opacities))
 
 
 def median_depth(
@@ -326,8 +325,9 @@ def median_depth(
             m2, conics, depths, radii = ref.project(means, quats, scales, viewmat[None], K[None], width, height,
                                                     near_plane, 1e10)
             return ref.median_depth(m2[0], conics[0], opacities, depths[0], radii[0], width, height, alpha_level)
-        m2, conics, depths, opac, bins = _cpu_binned(means, quats, scales, opacities, viewmat, K, width, height,
-                                                     near_plane)
+        m2, conics, depths, radii, opac = _cpu_projected(means, quats, scales, opacities, viewmat, K, width, height,
+                                                         near_plane)
+        bins = _kernels.bin_gaussians(m2, conics, opac, radii, depths, width, height)
         level = _host(alpha_level) if isinstance(alpha_level, Tensor) else alpha_level
         levels = np.broadcast_to(np.asarray(level, m2.dtype), (height, width))
         out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], bins[4], width, height,
@@ -335,28 +335,28 @@ def median_depth(
         return torch.from_numpy(out).to(means.device)
 
 
-def pixel_contributors(
+def seen_in_front(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor, width: int,
-    height: int, *, near_plane: float = 0.01, backend: Backend = "auto",
-) -> tuple[Tensor, Tensor]:
-    """Per pixel (row-major), ids of the Gaussians it composites, front to back -> offsets [H*W+1], ids [M].
+    height: int, depth: Tensor, *, near_plane: float = 0.01, backend: Backend = "auto",
+) -> Tensor:
+    """[N] bool: the Gaussians some pixel sees (alpha >= 1/255, compositing's skip rule) at a camera z below that
+    pixel's `depth` [H, W] (+inf: anything there counts).
 
-    Honours the same skip (alpha < 1/255) and stop (T <= 1e-4) rules as `rasterization`, so recompositing
-    the listed Gaussians reproduces the rendered alpha. Used by NGS depth pruning.
+    NGS depth pruning asks it of the noise against the surface's depth. There is no stop rule: a Gaussian in
+    front of the surface counts even where others in front of it have used up the transmittance. Forward only.
     """
-    chosen = _one_camera("pixel_contributors", means, quats, scales, opacities, viewmat, K, width, height, backend)
+    chosen = _one_camera("seen_in_front", means, quats, scales, opacities, viewmat, K, width, height, backend)
     width, height = int(width), int(height)
+    if not (torch.is_tensor(depth) and tuple(depth.shape) == (height, width)):
+        raise BadInputError(f"seen_in_front: depth must be a [{height}, {width}] tensor")
     with torch.no_grad():
         if chosen != "cpu":
             m2, conics, depths, radii = ref.project(means, quats, scales, viewmat[None], K[None], width, height,
                                                     near_plane, 1e10)
-            return ref.contributors(m2[0], conics[0], opacities, depths[0], radii[0], width, height)
-        m2, conics, _, opac, bins = _cpu_binned(means, quats, scales, opacities, viewmat, K, width, height,
-                                                near_plane)
-        fast = means.dtype == torch.float32
-        feats = np.zeros((means.shape[0], 1), m2.dtype)
-        _, _, n_proc, taken = _kernels.rasterize_fwd(m2, conics, feats, opac, bins[0], bins[1], bins[4], width, height,
-                                                     fast)
-        offsets, ids = _kernels.list_contributors(m2, conics, opac, bins[0], bins[1], taken, width, height, n_proc,
-                                                  fast)
-        return torch.from_numpy(offsets).to(means.device), torch.from_numpy(ids).to(means.device)
+            return ref.seen_in_front(m2[0], conics[0], opacities, depths[0], radii[0], width, height,
+                                     depth.to(means.device))
+        m2, conics, depths, radii, opac = _cpu_projected(means, quats, scales, opacities, viewmat, K, width, height,
+                                                         near_plane)
+        limit = np.ascontiguousarray(_host(depth).astype(depths.dtype))
+        return torch.from_numpy(_kernels.seen_in_front(m2, conics, opac, radii, depths, width, height, limit)).to(
+            means.device)

@@ -110,29 +110,34 @@ def tile_rects(means2d: Tensor, radii: Tensor, width: int, height: int) -> Tenso
     return torch.where((radii > 0)[:, None], rect, torch.zeros_like(rect))
 
 
-def _dense_weights(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
-                   width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
-    """One camera: depth order [N] and per-pixel compositing weights [H*W, N] (in that order), final T [H*W]."""
-    order = torch.sort(depths.detach(), stable=True).indices                 # [N]
-    m2, cn, op, rad = means2d[order], conics[order], opacities[order], radii[order]
-    rect = tile_rects(m2, rad, width, height)                               # [N, 4]
+def _dense_alphas(means2d: Tensor, conics: Tensor, opacities: Tensor, radii: Tensor, width: int,
+                  height: int) -> tuple[Tensor, Tensor]:
+    """One camera, Gaussians in the given order: alphas [H*W, N] and where they pass the skip rule [H*W, N]."""
+    rect = tile_rects(means2d, radii, width, height)                        # [N, 4]
     ys, xs = torch.meshgrid(torch.arange(height, device=means2d.device), torch.arange(width, device=means2d.device),
                             indexing="ij")
     px = xs.reshape(-1, 1).to(means2d.dtype) + 0.5                          # [P, 1]
     py = ys.reshape(-1, 1).to(means2d.dtype) + 0.5
     ptx, pty = xs.reshape(-1, 1) // TILE, ys.reshape(-1, 1) // TILE
     in_rect = (ptx >= rect[:, 0]) & (ptx < rect[:, 2]) & (pty >= rect[:, 1]) & (pty < rect[:, 3])  # [P, N]
-    dx, dy = m2[:, 0] - px, m2[:, 1] - py                                     # [P, N]
-    sigma = 0.5 * (cn[:, 0] * dx * dx + cn[:, 2] * dy * dy) + cn[:, 1] * dx * dy
-    alpha = torch.clamp_max(op * torch.exp(-sigma), ALPHA_MAX)
-    valid = in_rect & (sigma >= 0) & (alpha >= ALPHA_MIN)
+    dx, dy = means2d[:, 0] - px, means2d[:, 1] - py                           # [P, N]
+    sigma = 0.5 * (conics[:, 0] * dx * dx + conics[:, 2] * dy * dy) + conics[:, 1] * dx * dy
+    alpha = torch.clamp_max(opacities * torch.exp(-sigma), ALPHA_MAX)
+    return alpha, in_rect & (sigma >= 0) & (alpha >= ALPHA_MIN)
+
+
+def _dense_weights(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
+                   width: int, height: int) -> tuple[Tensor, Tensor, Tensor]:
+    """One camera: depth order [N] and per-pixel compositing weights [H*W, N] (in that order), final T [H*W]."""
+    order = torch.sort(depths.detach(), stable=True).indices                 # [N]
+    alpha, valid = _dense_alphas(means2d[order], conics[order], opacities[order], radii[order], width, height)
     alpha = torch.where(valid, alpha, torch.zeros_like(alpha))
     next_T = torch.cumprod(1 - alpha, dim=-1)                               # [P, N] transmittance after i
     keep = valid & (next_T.detach() > T_STOP)
     alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
     T_after = torch.cumprod(1 - alpha, dim=-1)
     T_before = torch.cat([torch.ones_like(T_after[:, :1]), T_after[:, :-1]], dim=-1)
-    return order, alpha * T_before, T_after[:, -1] if T_after.shape[1] else torch.ones_like(px[:, 0])
+    return order, alpha * T_before, T_after[:, -1] if T_after.shape[1] else alpha.new_ones(height * width)
 
 
 def rasterize(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
@@ -161,13 +166,10 @@ def median_depth(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Ten
     return out.reshape(height, width)
 
 
-def contributors(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
-                 width: int, height: int) -> tuple[Tensor, Tensor]:
-    """One camera: CSR listing (offsets [H*W+1], ids [M]) of contributing Gaussians, front to back."""
+def seen_in_front(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor,
+                  width: int, height: int, limit: Tensor) -> Tensor:
+    """One camera: [N] bool, Gaussians some pixel sees (skip rule, no stop rule) at a depth below its `limit`
+    [H, W]."""
     with torch.no_grad():
-        order, w, _ = _dense_weights(means2d, conics, opacities, depths, radii, width, height)
-        keep = w > 0                                                           # [P, N]
-        offsets = torch.zeros(keep.shape[0] + 1, dtype=torch.long, device=keep.device)
-        offsets[1:] = torch.cumsum(keep.sum(-1), 0)
-        ids = order.expand_as(keep)[keep]
-    return offsets, ids
+        _, valid = _dense_alphas(means2d, conics, opacities, radii, width, height)
+        return (valid & (depths[None, :] < limit.reshape(-1, 1))).any(dim=0)

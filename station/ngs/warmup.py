@@ -17,7 +17,7 @@ from multiprocessing.process import BaseProcess
 import torch
 
 from station.ngs.losses import ssim
-from station.ngs.raster import median_depth, pixel_contributors, rasterization
+from station.ngs.raster import median_depth, rasterization, seen_in_front
 
 
 def exercise_kernels() -> None:
@@ -28,7 +28,7 @@ def exercise_kernels() -> None:
 
 def exercise_raster_kernels() -> None:
     """The rasteriser's kernels: float32, SH coefficients, an extra channel (NGS's noise flag), a backward pass,
-    and the infill's depth and contributor queries."""
+    and the infill's depth and depth-pruning queries."""
     generator = torch.Generator().manual_seed(0)
     n, size = 64, 32
     means = ((torch.rand(n, 3, generator=generator) - 0.5) * 0.5).requires_grad_()
@@ -45,7 +45,7 @@ def exercise_raster_kernels() -> None:
         (colors.sum() + alphas.sum()).backward()
     surface = [t.detach() for t in (means, quats, scales, opacities)]
     median_depth(*surface, viewmat, K, size, size, alpha_level=torch.full((size, size), 0.5))
-    pixel_contributors(*surface, viewmat, K, size, size)
+    seen_in_front(*surface, viewmat, K, size, size, torch.full((size, size), 2.0))
 
 
 def exercise_ssim_kernels() -> None:
