@@ -13,6 +13,7 @@ from scipy import ndimage, sparse
 from scipy.sparse.csgraph import maximum_flow
 
 from station.errors import BadInputError
+from station.process import masks
 from station.process.images_io import read_exr, read_mask_png, read_png16
 from station.process.masks import (_MAX_NATS, _NATS_TO_CAPACITY, Matte, MaskSettings, check_masks, column_medians,
                                    compute_mask,
@@ -69,6 +70,32 @@ def test_mask_ignores_contact_shadow_and_exposure_drift(look: str, shading: floa
     shot, plate, truth = synthetic_pair(look, shading=shading)
     mask = compute_mask(shot, plate)
     assert iou(mask, truth) >= 0.98
+
+
+def test_the_cut_ends_at_the_round_that_moves_at_most_its_settled_share_of_the_stone(monkeypatch) -> None:
+    shot, plate, truth = synthetic_pair("speckled", seed=4)
+    cuts: list[np.ndarray] = []  # each round's cut, in order
+    real_min_cut = masks.min_cut
+
+    def recorded_min_cut(*args) -> np.ndarray:
+        cuts.append(real_min_cut(*args))
+        return cuts[-1]
+
+    monkeypatch.setattr(masks, "min_cut", recorded_min_cut)
+
+    def rounds(settled_fraction: float) -> tuple[int, np.ndarray]:
+        cuts.clear()
+        mask = compute_mask(shot, plate, MaskSettings(settled_fraction=settled_fraction))
+        return len(cuts), mask
+
+    assert rounds(0.0)[0] == 3  # only a fixed point ends it early; this shot has none in three rounds
+    second = cuts[1]
+    share = np.count_nonzero(second != cuts[0]) / np.count_nonzero(second)  # what the second round moved
+    assert 0 < share < 0.01
+    assert rounds(0.999 * share)[0] == 3
+    count, mask = rounds(share)
+    assert count == 2 and iou(mask, truth) >= 0.98
+    assert rounds(1.0)[0] == 1  # any first cut settles
 
 
 def colour_chart(h: int = 240, w: int = 320, x0: int = 218, y0: int = 90) -> np.ndarray:

@@ -66,6 +66,9 @@ class MaskSettings:
     seed_blob_fraction: float = 0.05  # smaller blobs than this share of the biggest are noise
     crop_margin: float = 0.35  # the cut runs on the seed's box grown by this fraction of its size
     cut_iterations: int = 3  # cut, refit shadow field and stone colours, cut again
+    # A round that moves no more than this share of the stone's pixels has settled: the next would move only a few
+    # edge pixels, so the cut ends there.
+    settled_fraction: float = 1e-3
     shadow_field_fraction: float = 0.022  # Gaussian scale of the shadow's local plane, per sqrt(seed area) px
     min_shadow_field_px: float = 1.5  # below this the plane follows the noise more than the shadow
     shadow_field_gap_px: int = 2  # background this close to the stone is left out of the fit (mixed pixels)
@@ -551,9 +554,12 @@ def refine_graph_cut(
         # in noise units against the shadowed plate: the plate's edges and the shadow's gradient cancel
         edges = (edge_contrast - np.expm1(shadow)[..., None]) / edge_sigma  # [h, w, 3]
         cut = min_cut(background_nll - stone_nll + hull_prior, edges, settings.smoothness, frame)
-        if np.array_equal(cut, stone):
+        moved = int(np.count_nonzero(cut != stone))
+        if moved == 0:
             break  # a fixed point: every further round would cut the same
         stone, shadow = cut, None
+        if moved <= settings.settled_fraction * np.count_nonzero(stone):
+            break
     coverage = np.zeros(seed.shape, dtype=np.float32)
     background = plate.copy()
     coverage[crop] = stone
