@@ -28,7 +28,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from numba import njit
 
 from station.process.develop_stage import (
     DevelopReport,
@@ -41,7 +40,7 @@ from station.process.images_io import read_exr, read_mask_png
 from station.process.masks import fill_holes
 from station.formats.transforms import PinholeCamera
 from station.process.transforms import read_transforms
-from station.process.visual_hull import carve_grid, grid_points, pixel_of, surface_voxels, view_bounds
+from station.process.visual_hull import carve_grid, draw_points, grid_points, surface_voxels, view_bounds
 from station.scanfolder import ScanFolder
 
 
@@ -111,23 +110,9 @@ def project_hull(hull: Hull, c2w: np.ndarray, intr: PinholeCamera) -> np.ndarray
     w2c = np.linalg.inv(c2w)
     offsets = np.stack(np.meshgrid(*[[-0.25, 0.25]] * 3, indexing="ij"), -1).reshape(-1, 3) * hull.voxel
     points = np.ascontiguousarray(hull.surface, dtype=np.float64)
-    silhouette = _draw_points(points, offsets, np.ascontiguousarray(w2c[:3]), intr.matrix().astype(np.float64),
-                              intr.height, intr.width)
+    silhouette = draw_points(points, offsets, np.ascontiguousarray(w2c[:3]), intr.matrix().astype(np.float64),
+                             intr.height, intr.width)
     return fill_holes(silhouette)
-
-
-@njit(cache=True)
-def _draw_points(points, offsets, w2c, k, height, width):
-    """[H, W] bool: the pixels the points [N, 3], each moved by every offset [O, 3], land in (in front of the camera).
-    One loop, not a numpy pass per offset: every posed view of a scan projects a hull."""
-    silhouette = np.zeros((height, width), dtype=np.bool_)
-    for i in range(points.shape[0]):
-        for o in range(offsets.shape[0]):
-            u, v, in_front = pixel_of(w2c, k, points[i, 0] + offsets[o, 0], points[i, 1] + offsets[o, 1],
-                                      points[i, 2] + offsets[o, 2])
-            if in_front and 0 <= u < width and 0 <= v < height:
-                silhouette[v, u] = True
-    return silhouette
 
 
 def looking_down(c2w: np.ndarray) -> float:

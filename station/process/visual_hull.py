@@ -100,6 +100,21 @@ def pixel_of(w2c, k, x, y, z):
     return column, math.floor((k[1, 0] * cx + k[1, 1] * cy + k[1, 2] * cz) / w), True
 
 
+@njit(cache=True)
+def draw_points(points, offsets, w2c, k, height, width):
+    """[H, W] bool: the pixels the points [N, 3], each moved by every offset [O, 3], land in (in front of the camera).
+    One loop, not a numpy pass per offset: every posed view of a scan projects a hull. It lives beside `pixel_of`:
+    numba's cache does not see edits to a helper in another module."""
+    silhouette = np.zeros((height, width), dtype=np.bool_)
+    for i in range(points.shape[0]):
+        for o in range(offsets.shape[0]):
+            u, v, in_front = pixel_of(w2c, k, points[i, 0] + offsets[o, 0], points[i, 1] + offsets[o, 1],
+                                      points[i, 2] + offsets[o, 2])
+            if in_front and 0 <= u < width and 0 <= v < height:
+                silhouette[v, u] = True
+    return silhouette
+
+
 @njit(parallel=True, cache=True)
 def _carve(grid, w2cs, k, masks, sizes, images, with_colour, max_misses, min_seen):
     """Per voxel, the views in order until more than `max_misses` of those that see it call it background:
