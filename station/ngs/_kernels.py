@@ -118,14 +118,19 @@ def _extent(a, c, det, sig_max):
 
 
 @njit(cache=True)
+def _pixel_range(m, ext, lo, hi):
+    """Pixels [i0, i1) of [lo, hi) whose centres lie within ext of m (ext may be BIG); empty as (i0, i0)."""
+    first = min(max(m - ext - 0.5, lo - 1.0), hi + 1.0)
+    last = min(max(m + ext - 0.5, lo - 1.0), hi + 1.0)
+    i0 = max(int(math.ceil(first)), lo)
+    return i0, max(min(int(math.floor(last)) + 1, hi), i0)
+
+
+@njit(cache=True)
 def _span(m, ext, origin):
     """Tile-local rows (or columns) [i0, i1) whose pixel centres lie within ext of m: only they can reach alpha
     >= 1/255, so compositing skips the others (exactly: they would add nothing)."""
-    lo = min(max(m - ext - origin - 0.5, -1.0), TILE + 1.0)
-    hi = min(max(m + ext - origin - 0.5, -1.0), TILE + 1.0)
-    i0 = max(int(math.ceil(lo)), 0)
-    i1 = min(int(math.floor(hi)) + 1, TILE)
-    return i0, max(i1, i0)
+    return _pixel_range(m - origin, ext, 0, TILE)
 
 
 @njit(cache=True, _nrt=False)
@@ -607,14 +612,6 @@ def reduce_per_gaussian(slot_grads, gauss_offsets, gauss_slots):
     return out
 
 
-@njit(cache=True)
-def _pixel_range(m, ext, lo, hi):
-    """Pixels [i0, i1) of [lo, hi) whose centres lie within ext of m (ext may be BIG)."""
-    first = min(max(m - ext - 0.5, lo - 1.0), hi + 1.0)
-    last = min(max(m + ext - 0.5, lo - 1.0), hi + 1.0)
-    return max(int(math.ceil(first)), lo), max(min(int(math.floor(last)) + 1, hi), lo)
-
-
 @njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
 def seen_in_front(means2d, conics, opacities, radii, depths, width, height, limit):
     """Per Gaussian, whether some pixel sees it (alpha >= 1/255 inside its tiles: compositing's skip rule) at a
@@ -639,7 +636,7 @@ def seen_in_front(means2d, conics, opacities, radii, depths, width, height, limi
             for x in range(x0, x1):
                 dx = u - (x + 0.5)
                 sig = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                if sig >= 0.0 and z < limit[y, x] and min(ALPHA_MAX, op * math.exp(-sig)) >= ALPHA_MIN:
+                if sig >= 0.0 and z < limit[y, x] and op * math.exp(-sig) >= ALPHA_MIN:  # ALPHA_MAX is above it
                     out[g] = True
                     break
             if out[g]:
