@@ -27,8 +27,8 @@ class LossConfig:
     crop_threshold: float = 0.1
 
 
-def _gaussian_taps() -> torch.Tensor:
-    coords = torch.arange(SSIM_WINDOW, dtype=torch.float32) - SSIM_WINDOW // 2
+def _gaussian_taps(device: torch.device | str = "cpu") -> torch.Tensor:
+    coords = torch.arange(SSIM_WINDOW, dtype=torch.float32, device=device) - SSIM_WINDOW // 2
     g = torch.exp(-(coords**2) / (2 * SSIM_SIGMA**2))
     return g / g.sum()
 
@@ -54,7 +54,7 @@ def ssim_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     y = b.permute(2, 0, 1)[None]
     channels = x.shape[1]
     stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [1, 5C, H, W]
-    taps = _gaussian_taps().to(x)
+    taps = _gaussian_taps(x.device).to(x.dtype)
     moments = F.conv2d(stack, taps.view(1, 1, -1, 1).expand(5 * channels, 1, -1, 1), groups=5 * channels)
     moments = F.conv2d(moments, taps.view(1, 1, 1, -1).expand(5 * channels, 1, 1, -1), groups=5 * channels)
     mu_x, mu_y, xx, yy, xy = moments.split(channels, dim=1)

@@ -146,7 +146,7 @@ def split(params: Params, optimizers: Optimizers, mask: torch.Tensor, generator:
         return torch.cat([p[rest], new])
 
     def state_fn(_: str, v: torch.Tensor) -> torch.Tensor:
-        return torch.cat([v[rest], torch.zeros((2 * len(sel), *v.shape[1:]), dtype=v.dtype)])
+        return torch.cat([v[rest], torch.zeros((2 * len(sel), *v.shape[1:]), dtype=v.dtype, device=v.device)])
 
     update_params(params, optimizers, param_fn, state_fn)
 
@@ -209,8 +209,8 @@ class DefaultStrategy:
         grads[..., 0] *= info["width"] / 2.0 * grads.shape[0]
         grads[..., 1] *= info["height"] / 2.0 * grads.shape[0]
         if self.state.grad2d is None:
-            self.state.grad2d = torch.zeros(n)
-            self.state.count = torch.zeros(n)
+            self.state.grad2d = torch.zeros(n, device=grad.device)
+            self.state.count = torch.zeros(n, device=grad.device)
         visible = info["radii"][:, :n] > 0  # [C, N]
         ids = torch.where(visible)[1]
         self.state.grad2d.index_add_(0, ids, grads[visible].norm(dim=-1))
@@ -232,7 +232,8 @@ class DefaultStrategy:
         is_split = high & ~small
         if is_dupli.any():
             duplicate(params, optimizers, is_dupli)
-        is_split = torch.cat([is_split, torch.zeros(int(is_dupli.sum()), dtype=torch.bool)])
+        clones = torch.zeros(int(is_dupli.sum()), dtype=torch.bool, device=is_split.device)
+        is_split = torch.cat([is_split, clones])
         if is_split.any():
             split(params, optimizers, is_split, self.generator)
         return int(is_dupli.sum()), int(is_split.sum())

@@ -7,7 +7,6 @@ killed run continues where it stopped.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import time
@@ -166,15 +165,8 @@ class Trainer:
             mask = self.train_views()[index].mask
             if mask is None:
                 return None
-            with self.on_device:
-                self._regions[key] = mask_regions(mask, self.cfg.loss)
+            self._regions[key] = mask_regions(mask, self.cfg.loss)
         return self._regions[key]
-
-    @property
-    def on_device(self) -> contextlib.AbstractContextManager:
-        """Where tensors made without naming a device land (losses.py, strategy.py): the training device. No
-        context when that is already torch's default, as on a CPU: its Python hook on every op costs 3% of a step."""
-        return contextlib.nullcontext() if torch.get_default_device() == self.device else self.device
 
     @property
     def target_steps(self) -> int:
@@ -224,9 +216,8 @@ class Trainer:
         rgb, noise_weight = colors.squeeze(0).split(3, dim=-1) if surface_fg else (colors.squeeze(0), None)
         alpha = alphas.squeeze(0).squeeze(-1)
         surface_alpha = alpha - noise_weight.squeeze(-1) if surface_fg else None
-        with self.on_device:
-            loss, terms = total_loss(rgb, alpha, view.target, view.mask, self.cfg.loss, surface_alpha,
-                                     self.loss_regions(index))
+        loss, terms = total_loss(rgb, alpha, view.target, view.mask, self.cfg.loss, surface_alpha,
+                                 self.loss_regions(index))
         check_finite(step, {"loss": loss})
         if loss.requires_grad:  # False only when the surface is frozen and no noise survived
             loss.backward()
@@ -234,8 +225,7 @@ class Trainer:
             for optimizer in self.optimizers.values():
                 optimizer.step()
                 optimizer.zero_grad(set_to_none=True)
-            with self.on_device:
-                self.strategy.step_post_backward(self.model.params, self.optimizers, step, meta)
+            self.strategy.step_post_backward(self.model.params, self.optimizers, step, meta)
         if self.ngs:
             self.ngs.step_post_backward(step)
         terms["loss"] = float(loss.detach())
