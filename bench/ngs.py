@@ -20,6 +20,7 @@ bench/results/ngs.json and, beside it, ngs.svg: held-out PSNR and SOS against tr
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -44,6 +45,7 @@ from station.ngs.presets import make_config
 from station.ngs.resolution import ResolutionConfig
 from station.ngs.sos import evaluate, load_surface
 from station.ngs.trainer import TrainConfig, Trainer
+from station.ngs.warmup import start_kernel_warmup
 from station.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_json
 
 RESULTS = Path(__file__).parent / "results" / "ngs.json"
@@ -73,6 +75,13 @@ def shoot_and_process(root: Path, stone: str | None, size: str) -> Path:
     return scan
 
 
+@functools.cache
+def compile_kernels_elsewhere() -> None:
+    """Fill numba's cache from a child, once per bench: compiled here, a kernel would time its compile in the first
+    run, and under fastmath fresh code differs in its last bits from the cached code that later runs load."""
+    start_kernel_warmup().join()
+
+
 def train_one(source: Path, work: Path, name: str, cfg: TrainConfig) -> Path:
     """Train `cfg` on a copy of the posed part of `source`; returns the run's scan folder. A run already
     finished there with the same config is kept (another config trains afresh), and a killed one resumes
@@ -84,6 +93,7 @@ def train_one(source: Path, work: Path, name: str, cfg: TrainConfig) -> Path:
     for sub in ("images", "masks", "poses"):
         if not (run / sub).is_dir():
             shutil.copytree(source / sub, run / sub)
+    compile_kernels_elsewhere()
     scene = load_scene(run, downscale=cfg.downscale, seed=cfg.seed)
     trainer = Trainer(scene, cfg, run / "model")
     write_model(trainer, trainer.run())
