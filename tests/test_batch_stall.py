@@ -19,6 +19,9 @@ from station.batch.store import JobStore
 
 pytestmark = pytest.mark.slow
 
+FAULT_HOOKS = Path(__file__).parent / "fault_hooks"
+STEP_SLEEP = 0.05  # runner A's 300 tiny steps then last over 15 s, well past its 3 s lease on any machine
+
 
 def _descendants(pid: int) -> set[int]:
     """Every live process below `pid`, from /proc."""
@@ -43,13 +46,17 @@ def _alive(pids: set[int]) -> set[int]:
 
 
 def test_a_stalled_runners_stage_stops_itself_and_the_runner_records_nothing_when_it_wakes(tiny_shot, tmp_path):
-    """SIGSTOP runner A mid-training; B takes the job over once A's lease runs out; SIGCONT A."""
+    """SIGSTOP runner A mid-training; B takes the job over once A's lease runs out; SIGCONT A.
+
+    A's training is slowed by a test hook: a tiny training run can finish inside the lease's margin."""
     scan = copy_scans([tiny_shot("2")], tmp_path)[0]
     queue = tmp_path / "queue.sqlite"
     assert batch("add", scan, "--queue", queue).returncode == 0
     run = [*BATCH, "run", "--preset", "tiny", "--lease", "3", "--poll", "0.2", "--backoff", "0", "--queue", str(queue)]
+    slow = {**os.environ, "STATION_TEST_SLOW_STEP": f"{STEP_SLEEP}:{scan}",
+            "PYTHONPATH": os.pathsep.join([str(FAULT_HOOKS), os.environ.get("PYTHONPATH", "")])}
     with open(tmp_path / "a.log", "wb") as sink:
-        runner_a = subprocess.Popen(run, stdout=sink, stderr=sink)
+        runner_a = subprocess.Popen(run, stdout=sink, stderr=sink, env=slow)
     store = JobStore(queue)
     job = store.get(scan)
     helpers = set()
