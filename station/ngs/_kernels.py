@@ -513,13 +513,14 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         limit = np.zeros(TILE_PIX, np.int32)
         ga = np.zeros(TILE_PIX, dt)
         go = np.zeros((d_ch, TILE_PIX), dt)
-        rest = np.zeros((d_ch, TILE_PIX), dt)
+        rest = np.zeros(TILE_PIX, dt)  # sum over channels of d loss / d colour times what is left behind the list
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
         t_taken = np.empty(TILE_PIX, dt)
         gda = np.empty(TILE_PIX, dt)
         inv1a = np.empty(TILE_PIX, dt)
+        g_col = np.empty(TILE_PIX, dt)  # d loss / d colour . this Gaussian's colour, per pixel
         kmax = 0
         for p in range(TILE_PIX):
             if inside[p]:
@@ -531,7 +532,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 ga[p] = g_alpha[y, x]
                 for d in range(d_ch):
                     go[d, p] = g_feats[y, x, d]
-                    rest[d, p] = feats[y, x, d] + t_final[y, x] * background[d]
+                    rest[p] += g_feats[y, x, d] * (feats[y, x, d] + t_final[y, x] * background[d])
         for k in range(kmax):
             i = start + k
             k32 = np.int32(k)
@@ -554,36 +555,37 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                     T[p] = t * (ONE - a * take)
                     gda[p] = ga[p] * tn[p] * inv * take
                     inv1a[p] = inv * take
-                for d in range(d_ch):
+                    g_col[p] = ZERO
+                for d in range(d_ch):  # the channels meet only in g_col: one array of the rest, not one a channel
                     c = colors[g, d]
                     acc_c = ZERO
                     for p in range(p0, p1):
-                        rest[d, p] -= c * w[p]
-                        gda[p] += go[d, p] * (t_taken[p] * c - rest[d, p] * inv1a[p])
+                        g_col[p] += go[d, p] * c
                         acc_c += go[d, p] * w[p]
                     slots[i, 5 + d] += acc_c
                 g_op = ZERO
-                g_mx = ZERO
-                g_my = ZERO
-                g_a = ZERO
-                g_b = ZERO
-                g_c = ZERO
+                s_x = ZERO  # sums of d loss / d sigma times dx, dy and their products: the conic's terms come after
+                s_y = ZERO
+                s_xx = ZERO
+                s_xy = ZERO
+                s_yy = ZERO
                 for p in range(p0, p1):
-                    gd = gda[p] * np.float32(op * expo[p] < ALPHA_MAX)  # no gradient through the clamp
-                    g_op += gd * expo[p]
-                    g_sig = -gd * alpha[p]
+                    rest[p] -= w[p] * g_col[p]
+                    gd = (gda[p] + t_taken[p] * g_col[p] - inv1a[p] * rest[p]) * np.float32(op * expo[p] < ALPHA_MAX)
+                    g_op += gd * expo[p]                                   # no gradient through the clamp above
+                    g_sig = gd * alpha[p]                                  # minus d loss / d sigma
                     dx = mx - px[p]
                     dy = my - py[p]
-                    g_mx += g_sig * (ca * dx + cb * dy)
-                    g_my += g_sig * (cc * dy + cb * dx)
-                    g_a += g_sig * HALF * dx * dx
-                    g_b += g_sig * dx * dy
-                    g_c += g_sig * HALF * dy * dy
-                slots[i, 0] += g_mx
-                slots[i, 1] += g_my
-                slots[i, 2] += g_a
-                slots[i, 3] += g_b
-                slots[i, 4] += g_c
+                    s_x += g_sig * dx
+                    s_y += g_sig * dy
+                    s_xx += g_sig * dx * dx
+                    s_xy += g_sig * dx * dy
+                    s_yy += g_sig * dy * dy
+                slots[i, 0] -= ca * s_x + cb * s_y
+                slots[i, 1] -= cc * s_y + cb * s_x
+                slots[i, 2] -= HALF * s_xx
+                slots[i, 3] -= s_xy
+                slots[i, 4] -= HALF * s_yy
                 slots[i, 5 + d_ch] += g_op
     return slots
 

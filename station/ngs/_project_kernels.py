@@ -172,11 +172,14 @@ def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, ca
         dx, dy, dz = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
         nd = math.sqrt(dx * dx + dy * dy + dz * dz)
         _sh_basis(dx / nd, dy / nd, dz / nd, basis)
-        for ch in range(3):
-            acc = 0.0
-            for k in range((sh_degree + 1) ** 2):
-                acc += basis[k] * coeffs[g, k, ch]
-            colors[c, g, ch] = max(acc + 0.5, 0.0)
+        r, gr, b = 0.0, 0.0, 0.0  # coefficient by coefficient, the three channels side by side: contiguous loads
+        for k in range((sh_degree + 1) ** 2):
+            r += basis[k] * coeffs[g, k, 0]
+            gr += basis[k] * coeffs[g, k, 1]
+            b += basis[k] * coeffs[g, k, 2]
+        colors[c, g, 0] = max(r + 0.5, 0.0)
+        colors[c, g, 1] = max(gr + 0.5, 0.0)
+        colors[c, g, 2] = max(b + 0.5, 0.0)
 
 
 @njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=_NoAlias)
@@ -284,13 +287,17 @@ def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks
         gd0 = 0.0
         gd1 = 0.0
         gd2 = 0.0
-        for ch in range(3):
-            gcol = g_colors[c, g, ch] if colors[c, g, ch] > 0.0 else 0.0
-            for k in range((sh_degree + 1) ** 2):
-                g_coeffs[g, k, ch] += basis[k] * gcol
-                gd0 += bx[k] * coeffs[g, k, ch] * gcol
-                gd1 += by[k] * coeffs[g, k, ch] * gcol
-                gd2 += bz[k] * coeffs[g, k, ch] * gcol
+        g_r = g_colors[c, g, 0] if colors[c, g, 0] > 0.0 else 0.0  # no gradient where the colour was clamped to 0
+        g_g = g_colors[c, g, 1] if colors[c, g, 1] > 0.0 else 0.0
+        g_b = g_colors[c, g, 2] if colors[c, g, 2] > 0.0 else 0.0
+        for k in range((sh_degree + 1) ** 2):
+            g_coeffs[g, k, 0] += basis[k] * g_r
+            g_coeffs[g, k, 1] += basis[k] * g_g
+            g_coeffs[g, k, 2] += basis[k] * g_b
+            g_basis = coeffs[g, k, 0] * g_r + coeffs[g, k, 1] * g_g + coeffs[g, k, 2] * g_b
+            gd0 += bx[k] * g_basis
+            gd1 += by[k] * g_basis
+            gd2 += bz[k] * g_basis
         dot = u0 * gd0 + u1 * gd1 + u2 * gd2
         gm = ((gd0 - u0 * dot) / nd, (gd1 - u1 * dot) / nd, (gd2 - u2 * dot) / nd)
         for i in range(3):
