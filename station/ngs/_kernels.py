@@ -517,9 +517,6 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
-        t_taken = np.empty(TILE_PIX, dt)
-        gda = np.empty(TILE_PIX, dt)
-        inv1a = np.empty(TILE_PIX, dt)
         g_col = np.empty(TILE_PIX, dt)  # d loss / d colour . this Gaussian's colour, per pixel
         kmax = 0
         for p in range(TILE_PIX):
@@ -545,35 +542,30 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 if p0 >= p1:
                     continue
                 _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, p0, p1)
-                for p in range(p0, p1):
-                    a = alpha[p]
-                    t = T[p]
-                    take = np.float32(a >= ALPHA_MIN) * np.float32(k32 < limit[p])  # a 0/1 mask: it vectorises
-                    inv = ONE / (ONE - a)
-                    t_taken[p] = t * take
-                    w[p] = a * t * take
-                    T[p] = t * (ONE - a * take)
-                    gda[p] = ga[p] * tn[p] * inv * take
-                    inv1a[p] = inv * take
+                for p in range(p0, p1):  # the channels meet only in g_col: one array of the rest, not one a channel
                     g_col[p] = ZERO
-                for d in range(d_ch):  # the channels meet only in g_col: one array of the rest, not one a channel
+                for d in range(d_ch):
                     c = colors[g, d]
-                    acc_c = ZERO
                     for p in range(p0, p1):
                         g_col[p] += go[d, p] * c
-                        acc_c += go[d, p] * w[p]
-                    slots[i, 5 + d] += acc_c
                 g_op = ZERO
                 s_x = ZERO  # sums of d loss / d sigma times dx, dy and their products: the conic's terms come after
                 s_y = ZERO
                 s_xx = ZERO
                 s_xy = ZERO
                 s_yy = ZERO
-                for p in range(p0, p1):
-                    rest[p] -= w[p] * g_col[p]
-                    gd = (gda[p] + t_taken[p] * g_col[p] - inv1a[p] * rest[p]) * np.float32(op * expo[p] < ALPHA_MAX)
+                for p in range(p0, p1):  # one pass: no per-pixel intermediates stored and read back
+                    a = alpha[p]
+                    t = T[p]
+                    take = np.float32(a >= ALPHA_MIN) * np.float32(k32 < limit[p])  # a 0/1 mask: it vectorises
+                    inv = take / (ONE - a)
+                    wp = a * t * take
+                    w[p] = wp
+                    T[p] = t * (ONE - a * take)
+                    rest[p] -= wp * g_col[p]
+                    gd = (ga[p] * tn[p] * inv + t * take * g_col[p] - inv * rest[p]) * np.float32(op * expo[p] < ALPHA_MAX)
                     g_op += gd * expo[p]                                   # no gradient through the clamp above
-                    g_sig = gd * alpha[p]                                  # minus d loss / d sigma
+                    g_sig = gd * a                                         # minus d loss / d sigma
                     dx = mx - px[p]
                     dy = my - py[p]
                     s_x += g_sig * dx
@@ -581,6 +573,11 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                     s_xx += g_sig * dx * dx
                     s_xy += g_sig * dx * dy
                     s_yy += g_sig * dy * dy
+                for d in range(d_ch):
+                    acc_c = ZERO
+                    for p in range(p0, p1):
+                        acc_c += go[d, p] * w[p]
+                    slots[i, 5 + d] += acc_c
                 slots[i, 0] -= ca * s_x + cb * s_y
                 slots[i, 1] -= cc * s_y + cb * s_x
                 slots[i, 2] -= HALF * s_xx
