@@ -37,6 +37,7 @@ ALPHA_MAX = F(conventions.ALPHA_MAX)
 ALPHA_MIN = F(conventions.ALPHA_MIN)
 T_STOP = F(conventions.T_STOP)
 BIG = 1e30
+RGB = 3  # feature channels the compositing loops carry themselves; any others get a loop each
 # exp(-sigma) = p(sigma / 8) ** 8: p is a relative minimax fit of exp(-u) on [0, 1] (Lawson's reweighted least
 # squares, 2.4e-8 in float64). Past sigma = 8, alpha < exp(-8) < 1/255 is skipped, so sigma is capped there.
 SIG_CAP, INV_SIG_CAP = F(8.0), F(0.125)
@@ -353,12 +354,14 @@ def _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, 
 
 @njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
 def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, extents, width, height, fast):
-    """Composite front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W] int32
+    """Composite colors [N, D >= 3] front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W] int32
     (position in the tile list where the pixel stopped; the list length if it never did), taken [M, 2 * STRIPS]
     uint8 (per intersection and strip, the rows [first, last) where it composited a pixel: only there can the
     backward find a gradient; [0, 0) for none)."""
     dt = means2d.dtype
     d_ch = colors.shape[1]
+    if d_ch < RGB:
+        raise ValueError("rasterize_fwd: colors must have at least the three colour channels")
     tw = (width + TILE - 1) // TILE
     ntiles = tile_offsets.shape[0] - 1
     feats = np.zeros((height, width, d_ch), dt)
@@ -391,19 +394,24 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
                 if p0 >= p1:
                     continue
                 first, last = p1, p0  # the first and one past the last pixel composited: min/max reductions
+                red, green, blue = colors[g, 0], colors[g, 1], colors[g, 2]
                 for p in range(p0, p1):
                     a = alpha[p]
                     t = T[p]
                     valid = np.float32(a >= ALPHA_MIN) * live[p]      # 0/1 masks, not branches: they vectorise
                     take = valid * np.float32(t * (ONE - a) > T_STOP)
-                    w[p] = a * t * take
+                    wp = a * t * take
+                    w[p] = wp
                     T[p] = t * (ONE - a * take)
                     live[p] -= valid - take                             # valid, not taken: the pixel stops here
                     stop_at[p] = k32 if valid > take else stop_at[p]
                     first = min(first, p if take > ZERO else p1)
                     last = max(last, p + U1 if take > ZERO else p0)
+                    acc[0, p] += red * wp                               # the colour here, the other channels after
+                    acc[1, p] += green * wp
+                    acc[2, p] += blue * wp
                 _record_taken(first, last, s, taken[start + k])
-                for d in range(d_ch):
+                for d in range(RGB, d_ch):
                     c = colors[g, d]
                     for p in range(p0, p1):
                         acc[d, p] += c * w[p]
@@ -499,6 +507,8 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
     d opacity (1). Walks only the rows the forward composited in (`taken`); the rest add nothing."""
     dt = means2d.dtype
     d_ch = colors.shape[1]
+    if d_ch < RGB:
+        raise ValueError("rasterize_bwd: colors must have at least the three colour channels")
     tw = (width + TILE - 1) // TILE
     ntiles = tile_offsets.shape[0] - 1
     m = isect_gid.shape[0]
@@ -542,12 +552,16 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 if p0 >= p1:
                     continue
                 _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, p0, p1)
+                red, green, blue = colors[g, 0], colors[g, 1], colors[g, 2]
                 for p in range(p0, p1):  # the channels meet only in g_col: one array of the rest, not one a channel
-                    g_col[p] = ZERO
-                for d in range(d_ch):
+                    g_col[p] = go[0, p] * red + go[1, p] * green + go[2, p] * blue
+                for d in range(RGB, d_ch):
                     c = colors[g, d]
                     for p in range(p0, p1):
                         g_col[p] += go[d, p] * c
+                g_red = ZERO
+                g_green = ZERO
+                g_blue = ZERO
                 g_op = ZERO
                 s_x = ZERO  # sums of d loss / d sigma times dx, dy and their products: the conic's terms come after
                 s_y = ZERO
@@ -561,6 +575,9 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                     inv = take / (ONE - a)
                     wp = a * t * take
                     w[p] = wp
+                    g_red += go[0, p] * wp
+                    g_green += go[1, p] * wp
+                    g_blue += go[2, p] * wp
                     T[p] = t * (ONE - a * take)
                     rest[p] -= wp * g_col[p]
                     gd = (ga[p] * tn[p] * inv + t * take * g_col[p] - inv * rest[p]) * np.float32(op * expo[p] < ALPHA_MAX)
@@ -573,7 +590,10 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                     s_xx += g_sig * dx * dx
                     s_xy += g_sig * dx * dy
                     s_yy += g_sig * dy * dy
-                for d in range(d_ch):
+                slots[i, 5] += g_red
+                slots[i, 6] += g_green
+                slots[i, 7] += g_blue
+                for d in range(RGB, d_ch):
                     acc_c = ZERO
                     for p in range(p0, p1):
                         acc_c += go[d, p] * w[p]
