@@ -73,11 +73,12 @@ def _tile_hit(u, v, a, b, c, sig_max, tx, ty):
     if (dxl <= 0.0 <= dxh and dyl <= 0.0 <= dyh) or a <= 0.0 or c <= 0.0:
         return True
     best = math.inf
+    b_c, b_a = b / c, b / a
     for dx in (dxl, dxh):
-        dy = min(max(-b * dx / c, dyl), dyh)
+        dy = min(max(-b_c * dx, dyl), dyh)
         best = min(best, _quad(a, b, c, dx, dy))
     for dy in (dyl, dyh):
-        dx = min(max(-b * dy / a, dxl), dxh)
+        dx = min(max(-b_a * dy, dxl), dxh)
         best = min(best, _quad(a, b, c, dx, dy))
     return best <= sig_max
 
