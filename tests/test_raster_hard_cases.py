@@ -189,16 +189,19 @@ def test_row_culling_drops_only_rows_that_composite_nothing():
     np.testing.assert_allclose(culled[3], whole[3], atol=1e-5 * np.abs(whole[3]).max(), rtol=0)
 
 
-def test_the_fast_exp_is_within_2e6_of_exp_wherever_alpha_can_reach_1_over_255():
+def test_the_fast_exp_is_within_1e6_of_exp_and_unbiased_wherever_alpha_can_reach_1_over_255():
     """The float32 kernels' polynomial exp(-sigma) against float64 exp, from sigma 0 to 6 (alpha = 1/255 at full
-    opacity is sigma 5.54), and below 1/255 at any sigma past that, however far."""
+    opacity is sigma 5.54), and below 1/255 at any sigma past that, however far. An exp biased high by a few 1e-7
+    (p(sigma / 8) ** 8, tried) lowered DTU scan65's held-out SOS in every run: real_dtu_scan65_ngs_at_748e147*."""
     radius = np.sqrt(np.concatenate([np.linspace(0, 6, 200_001), np.geomspace(6, 1e6, 1_000)])).astype(np.float32)
     n = radius.size
-    alpha, expo = np.empty(n, np.float32), np.empty(n, np.float32)
+    alpha, expo, bits = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.int32)
     # one Gaussian at the origin with conic (2, 0, 2): sigma is the squared distance of each "pixel" on the x axis
     _kernels._alphas(np.float32(0), np.float32(0), np.float32(2), np.float32(0), np.float32(2), np.float32(1), -radius,
-                     np.zeros(n, np.float32), alpha, expo, True, np.uint64(0), np.uint64(n))
+                     np.zeros(n, np.float32), alpha, expo, True, bits, bits.view(np.float32), np.uint64(0),
+                     np.uint64(n))
     sigma = radius.astype(np.float64) ** 2
     near = sigma <= 6
-    assert np.abs(expo[near] / np.exp(-sigma[near]) - 1).max() < 2e-6
+    error = expo[near] / np.exp(-sigma[near]) - 1
+    assert np.abs(error).max() < 1e-6 and abs(error.mean()) < 5e-8
     assert (alpha[~near] < 1 / 255).all() and (alpha == np.minimum(expo, np.float32(0.99))).all()

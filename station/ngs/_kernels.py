@@ -3,9 +3,8 @@
 Layout follows gsplat: every (tile, Gaussian) intersection sits in a per-tile, depth-sorted list. Tiles
 run in parallel (prange). A tile's pixels are stored in 8-pixel-wide strips, each row-major, so the rows
 of the strips a Gaussian reaches are one contiguous run; the loop over them is branch-free (0/1 masks,
-not selects) and LLVM vectorises it. `fast=True` uses a polynomial exp (rel. error ~1.2e-6, float32: a
-degree-6 polynomial cubed-squared, no integer bit tricks, so one loop) because math.exp blocks vectorisation;
-float64 callers (gradcheck) pass fast=False for math.exp. The
+not selects) and LLVM vectorises it. `fast=True` uses a polynomial exp (rel. error ~6e-7, float32)
+because math.exp blocks vectorisation; float64 callers (gradcheck) pass fast=False for math.exp. The
 forward records the rows of each strip an intersection composited in; the backward walks only those, gives
 every intersection its own gradient slot and reduces them per Gaussian in a fixed order: no atomics,
 deterministic.
@@ -36,13 +35,13 @@ ZERO, HALF, ONE = F(0.0), F(0.5), F(1.0)
 ALPHA_MAX = F(conventions.ALPHA_MAX)
 ALPHA_MIN = F(conventions.ALPHA_MIN)
 T_STOP = F(conventions.T_STOP)
+LOG2E = F(1.4426950408889634)
+LN2 = F(0.6931471805599453)
+SQRT2 = F(1.4142135623730951)
+EXP_FLOOR = F(-30.0)
 BIG = 1e30
+POLY = (F(1.0), F(1.0), F(0.5), F(1.0 / 6), F(1.0 / 24), F(1.0 / 120), F(1.0 / 720), F(1.0 / 5040))
 RGB = 3  # feature channels the compositing loops carry themselves; any others get a loop each
-# exp(-sigma) = p(sigma / 8) ** 8: p is a relative minimax fit of exp(-u) on [0, 1] (Lawson's reweighted least
-# squares, 2.4e-8 in float64). Past sigma = 8, alpha < exp(-8) < 1/255 is skipped, so sigma is capped there.
-SIG_CAP, INV_SIG_CAP = F(8.0), F(0.125)
-EXP_POLY = tuple(F(q) for q in (0.9999999759461506, -0.9999979030168444, 0.4999690149425684, -0.16649028627807178,
-                                0.04117682669088139, -0.0076140241694844756, 0.0008358459050529658))
 
 
 @njit(cache=True)
@@ -282,20 +281,23 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
 
 
 @njit(fastmath=True, cache=True, _nrt=False)
-def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, p0, p1):
-    """Alpha and exp(-sigma) of one Gaussian over a tile's pixels [p0, p1); sigma < 0 gives alpha 0."""
+def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, fbuf, p0, p1):
+    """Alpha and exp(-sigma) of one Gaussian over a tile's pixels [p0, p1); sigma < 0 gives alpha 0. `fbuf` is
+    `ibuf` viewed as float32, made once per tile by the caller: a view made here would allocate on every call."""
     if fast:
         for p in range(p0, p1):
             dx = mx - px[p]
             dy = my - py[p]
             sig = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-            u = min(sig, SIG_CAP) * INV_SIG_CAP
-            e = EXP_POLY[0] + u * (EXP_POLY[1] + u * (EXP_POLY[2] + u * (EXP_POLY[3] + u * (EXP_POLY[4] + u * (
-                EXP_POLY[5] + u * EXP_POLY[6])))))
-            e *= e
-            e *= e
-            e *= e
-            expo[p] = e if sig >= ZERO else ZERO
+            y = max(min(-sig, ZERO), EXP_FLOOR) * LOG2E
+            kf = np.floor(y)
+            f = (y - kf - HALF) * LN2
+            poly = POLY[0] + f * (POLY[1] + f * (POLY[2] + f * (POLY[3] + f * (POLY[4] + f * (POLY[5] + f * (
+                POLY[6] + f * POLY[7]))))))
+            ibuf[p] = (np.int32(kf) + np.int32(127)) << np.int32(23)
+            expo[p] = poly * SQRT2 if sig >= ZERO else ZERO
+        for p in range(p0, p1):
+            expo[p] *= fbuf[p]
             alpha[p] = min(ALPHA_MAX, op * expo[p])
     else:
         for p in range(p0, p1):
@@ -343,20 +345,20 @@ def _live_rows(live, rows):
 
 
 @njit(cache=True, _nrt=False)
-def _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast):
+def _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast, ibuf, fbuf):
     """Alphas of Gaussian g over its rows [r0, r1) of strip s that still hold a live pixel (`_live_rows`) ->
     those pixels [p0, p1), empty if none."""
     p0, p1 = _pixels(s, max(r0, rows[s, 0]), min(r1, rows[s, 1]))
     if p0 < p1:
         _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g], px, py, alpha,
-                expo, fast, p0, p1)
+                expo, fast, ibuf, fbuf, p0, p1)
     return p0, p1
 
 
 @njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
 def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, extents, width, height, fast):
-    """Composite colors [N, D >= 3] front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W] int32
-    (position in the tile list where the pixel stopped; the list length if it never did), taken [M, 2 * STRIPS]
+    """Composite colors [N, D >= 3] front to back -> feats [H, W, D] (no background), T_final [H, W], n_proc [H, W]
+    int32 (position in the tile list where the pixel stopped; the list length if it never did), taken [M, 2 * STRIPS]
     uint8 (per intersection and strip, the rows [first, last) where it composited a pixel: only there can the
     backward find a gradient; [0, 0) for none)."""
     dt = means2d.dtype
@@ -381,6 +383,8 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
+        ibuf = np.empty(TILE_PIX, np.int32)
+        fbuf = ibuf.view(np.float32)
         for p in range(TILE_PIX):
             live[p] = 1.0 if inside[p] else 0.0
         rows = np.empty((STRIPS, 2), np.int64)  # per strip, the rows that still hold a live pixel
@@ -390,8 +394,8 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
             r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
             k32 = np.int32(k)
             for s in range(s0, s1):
-                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo,
-                                      fast)
+                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast,
+                                      ibuf, fbuf)
                 if p0 >= p1:
                     continue
                 first, last = p1, p0  # the first and one past the last pixel composited: min/max reductions
@@ -449,6 +453,8 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
         median = np.full(TILE_PIX, np.inf, dt)
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
+        ibuf = np.empty(TILE_PIX, np.int32)
+        fbuf = ibuf.view(np.float32)
         t_level = np.ones(TILE_PIX, dt)
         for p in range(TILE_PIX):
             live[p] = 1.0 if inside[p] else 0.0
@@ -461,8 +467,8 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
             r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
             z = depths[g]
             for s in range(s0, s1):
-                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo,
-                                      fast)
+                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast,
+                                      ibuf, fbuf)
                 if p0 >= p1:
                     continue
                 for p in range(p0, p1):
@@ -529,6 +535,8 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
         g_col = np.empty(TILE_PIX, dt)  # d loss / d colour . this Gaussian's colour, per pixel
+        ibuf = np.empty(TILE_PIX, np.int32)
+        fbuf = ibuf.view(np.float32)
         kmax = 0
         for p in range(TILE_PIX):
             if inside[p]:
@@ -552,7 +560,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 p0, p1 = _taken_span(taken, i, s)
                 if p0 >= p1:
                     continue
-                _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, p0, p1)
+                _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, fbuf, p0, p1)
                 red, green, blue = colors[g, 0], colors[g, 1], colors[g, 2]
                 for p in range(p0, p1):  # the channels meet only in g_col: one array of the rest, not one a channel
                     g_col[p] = go[0, p] * red + go[1, p] * green + go[2, p] * blue
@@ -581,8 +589,9 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                     g_blue += go[2, p] * wp
                     T[p] = t * (ONE - a * take)
                     rest[p] -= wp * g_col[p]
-                    gd = (ga[p] * tn[p] * inv + t * take * g_col[p] - inv * rest[p]) * np.float32(op * expo[p] < ALPHA_MAX)
-                    g_op += gd * expo[p]                                   # no gradient through the clamp above
+                    unclamped = np.float32(op * expo[p] < ALPHA_MAX)     # no gradient through the clamp
+                    gd = (ga[p] * tn[p] * inv + t * take * g_col[p] - inv * rest[p]) * unclamped
+                    g_op += gd * expo[p]
                     g_sig = gd * a                                         # minus d loss / d sigma
                     dx = mx - px[p]
                     dy = my - py[p]
