@@ -205,3 +205,17 @@ def test_the_fast_exp_is_within_1e6_of_exp_and_unbiased_wherever_alpha_can_reach
     error = expo[near] / np.exp(-sigma[near]) - 1
     assert np.abs(error).max() < 1e-6 and abs(error.mean()) < 5e-8
     assert (alpha[~near] < 1 / 255).all() and (alpha == np.minimum(expo, np.float32(0.99))).all()
+
+
+def test_the_compositing_kernels_refuse_fewer_than_the_three_colour_channels():
+    """They carry red, green and blue in their own loops, so a two-channel feature array is refused, not misread."""
+    m2, conics = np.full((1, 2), 4.0, np.float32), np.array([[1.0, 0.0, 1.0]], np.float32)
+    op, two = np.ones(1, np.float32), np.ones((1, 2), np.float32)
+    bins = _kernels.bin_gaussians(m2, conics, op, np.ones(1, np.int32), np.ones(1, np.float32), 8, 8)
+    with pytest.raises(ValueError, match="three colour channels"):
+        _kernels.rasterize_fwd(m2, conics, two, op, bins[0], bins[1], bins[4], 8, 8, True)
+    img, t_final, n_proc, taken = _kernels.rasterize_fwd(m2, conics, np.ones((1, 3), np.float32), op, bins[0],
+                                                         bins[1], bins[4], 8, 8, True)
+    with pytest.raises(ValueError, match="three colour channels"):
+        _kernels.rasterize_bwd(m2, conics, two, op, np.zeros(2, np.float32), bins[0], bins[1], taken, 8, 8,
+                               img[..., :2].copy(), t_final, n_proc, np.ones((8, 8, 2), np.float32), t_final, True)

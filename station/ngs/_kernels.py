@@ -60,7 +60,15 @@ def _quad(a, b, c, dx, dy):
 
 
 @njit(cache=True)
-def _tile_hit(u, v, a, b, c, sig_max, tx, ty):
+def _slopes(a, b, c):
+    """b / a and b / c of a conic, once a Gaussian for `_tile_hit`; zero where it never divides (a or c <= 0)."""
+    if a <= 0.0 or c <= 0.0:
+        return b * ZERO, b * ZERO
+    return b / a, b / c
+
+
+@njit(cache=True)
+def _tile_hit(u, v, a, b, c, b_a, b_c, sig_max, tx, ty):
     """Whether some pixel centre of tile (tx, ty) can see the Gaussian at alpha >= 1/255: the minimum of its
     quadratic form over the tile's pixel-centre rectangle is <= sig_max. Exact culling (never drops a pixel
     that would composite it), about 2-3x fewer intersections than the 3-sigma rectangle alone. Callers first
@@ -72,7 +80,6 @@ def _tile_hit(u, v, a, b, c, sig_max, tx, ty):
     if (dxl <= 0.0 <= dxh and dyl <= 0.0 <= dyh) or a <= 0.0 or c <= 0.0:
         return True
     best = math.inf
-    b_c, b_a = b / c, b / a
     for dx in (dxl, dxh):
         dy = min(max(-b_c * dx, dyl), dyh)
         best = min(best, _quad(a, b, c, dx, dy))
@@ -234,11 +241,12 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
                                        float(conics[g, 2]), sig[g], tw, th)
             rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3] = x0, y0, x1, y1
             small = (x1 - x0) * (y1 - y0) <= 64
+            b_a, b_c = _slopes(conics[g, 0], conics[g, 1], conics[g, 2])
             bit = np.uint64(0)
             mask = np.uint64(0)
             for ty in range(y0, y1):
                 for tx in range(x0, x1):
-                    if _tile_hit(u, v, conics[g, 0], conics[g, 1], conics[g, 2], sig_max, tx, ty):
+                    if _tile_hit(u, v, conics[g, 0], conics[g, 1], conics[g, 2], b_a, b_c, sig_max, tx, ty):
                         counts[g] += 1
                         if small:
                             mask |= np.uint64(1) << bit
@@ -255,12 +263,13 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
             u, v = means2d[g, 0], means2d[g, 1]
             x0, y0, x1, y1 = rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3]
             small = (x1 - x0) * (y1 - y0) <= 64
+            b_a, b_c = _slopes(conics[g, 0], conics[g, 1], conics[g, 2])
             j = gauss_offsets[g]
             bit = np.uint64(0)
             for ty in range(y0, y1):
                 for tx in range(x0, x1):
                     if ((hits[g] >> bit) & np.uint64(1)) != np.uint64(0) if small else _tile_hit(
-                            u, v, conics[g, 0], conics[g, 1], conics[g, 2], sig[g], tx, ty):
+                            u, v, conics[g, 0], conics[g, 1], conics[g, 2], b_a, b_c, sig[g], tx, ty):
                         isect_tile[j] = ty * tw + tx
                         j += 1
                     bit += np.uint64(1)
@@ -393,13 +402,13 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
             g = isect_gid[start + k]
             r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
             k32 = np.int32(k)
+            red, green, blue = colors[g, 0], colors[g, 1], colors[g, 2]
             for s in range(s0, s1):
                 p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast,
                                       ibuf, fbuf)
                 if p0 >= p1:
                     continue
                 first, last = p1, p0  # the first and one past the last pixel composited: min/max reductions
-                red, green, blue = colors[g, 0], colors[g, 1], colors[g, 2]
                 for p in range(p0, p1):
                     a = alpha[p]
                     t = T[p]
@@ -492,8 +501,8 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
 @njit(cache=True, _nrt=False)
 def _record_taken(first, last, s, row):
     """Note in `row` (an intersection's `taken`) the rows of strip s from the one holding pixel `first` to the one
-    holding pixel `last` - 1: those it composited in. Found as two index reductions in the compositing loop; a
-    per-row sum of the weights after it cost a fifth of the forward."""
+    holding pixel `last` - 1: those it composited in. Two index reductions in the compositing loop find them,
+    cheaper than summing each row's weights after it."""
     if first < last:
         base = s * STRIP_PIX
         row[2 * s] = (int(first) - base) // STRIP
@@ -556,12 +565,12 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
             mx, my = means2d[g, 0], means2d[g, 1]
             ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
             op = opacities[g]
+            red, green, blue = colors[g, 0], colors[g, 1], colors[g, 2]
             for s in range(STRIPS):
                 p0, p1 = _taken_span(taken, i, s)
                 if p0 >= p1:
                     continue
                 _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, fbuf, p0, p1)
-                red, green, blue = colors[g, 0], colors[g, 1], colors[g, 2]
                 for p in range(p0, p1):  # the channels meet only in g_col: one array of the rest, not one a channel
                     g_col[p] = go[0, p] * red + go[1, p] * green + go[2, p] * blue
                 for d in range(RGB, d_ch):

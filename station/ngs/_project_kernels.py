@@ -172,14 +172,14 @@ def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, ca
         dx, dy, dz = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
         nd = math.sqrt(dx * dx + dy * dy + dz * dz)
         _sh_basis(dx / nd, dy / nd, dz / nd, basis)
-        r, gr, b = 0.0, 0.0, 0.0  # coefficient by coefficient, the three channels side by side: contiguous loads
+        red, green, blue = 0.0, 0.0, 0.0  # coefficient by coefficient, the channels side by side: contiguous loads
         for k in range((sh_degree + 1) ** 2):
-            r += basis[k] * coeffs[g, k, 0]
-            gr += basis[k] * coeffs[g, k, 1]
-            b += basis[k] * coeffs[g, k, 2]
-        colors[c, g, 0] = max(r + 0.5, 0.0)
-        colors[c, g, 1] = max(gr + 0.5, 0.0)
-        colors[c, g, 2] = max(b + 0.5, 0.0)
+            red += basis[k] * coeffs[g, k, 0]
+            green += basis[k] * coeffs[g, k, 1]
+            blue += basis[k] * coeffs[g, k, 2]
+        colors[c, g, 0] = max(red + 0.5, 0.0)
+        colors[c, g, 1] = max(green + 0.5, 0.0)
+        colors[c, g, 2] = max(blue + 0.5, 0.0)
 
 
 @njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=_NoAlias)

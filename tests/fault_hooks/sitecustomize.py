@@ -19,13 +19,13 @@ if _NAN or _SLOW:
 
     from station.ngs.trainer import Trainer
 
-    def _hooked(spec: str):
+    def _value_and_scan(spec: str):
         value, _, scan = spec.partition(":")
         return value, Path(scan).resolve()
 
     _train_step = Trainer.train_step
-    _nan_step, _nan_scan = _hooked(_NAN) if _NAN else (None, None)
-    _slow_seconds, _slow_scan = _hooked(_SLOW) if _SLOW else (None, None)
+    _nan_step, _nan_scan = _value_and_scan(_NAN) if _NAN else (None, None)
+    _slow_seconds, _slow_scan = _value_and_scan(_SLOW) if _SLOW else (None, None)
 
     def _faulty(self: Trainer, step: int) -> dict[str, float]:
         scan = self.model_dir.resolve().parent
