@@ -1,9 +1,9 @@
 """numba kernels of the CPU rasteriser: tile binning, forward compositing, backward, the depth-pruning query.
 
 Layout follows gsplat: every (tile, Gaussian) intersection sits in a per-tile, depth-sorted list. Tiles
-run in parallel (prange). A tile's pixels are stored in 8-pixel-wide strips, each row-major, so the rows
-of the strips a Gaussian reaches are one contiguous run; the loop over them is branch-free (0/1 masks,
-not selects) and LLVM vectorises it. `fast=True` uses a polynomial exp (rel. error ~6e-7, float32)
+run in parallel (prange). A tile's pixels are stored in strips, each row-major, so the rows of the strips a
+Gaussian reaches are one contiguous run; the loop over them is branch-free (0/1 masks, not selects) and LLVM
+vectorises it. `fast=True` uses a polynomial exp (rel. error ~6e-7, float32)
 because math.exp blocks vectorisation; float64 callers (gradcheck) pass fast=False for math.exp. The
 forward records the rows of each strip an intersection composited in; the backward walks only those, gives
 every intersection its own gradient slot and reduces them per Gaussian in a fixed order: no atomics,
@@ -25,7 +25,8 @@ from station.ngs._parallel import PRANGE_ONLY
 from station.ngs.conventions import TILE
 
 TILE_PIX = TILE * TILE
-STRIP = 8  # pixels across a strip: a tile's pixels are stored strip by strip, each strip row-major
+STRIP = 16  # pixels across a strip: a whole tile row, one AVX-512 vector of float32. 8-wide strips made twice
+# the loops, each half as long, and a slower step (bench/raster.py --against)
 STRIPS = TILE // STRIP
 STRIP_PIX = TILE * STRIP
 # float32 constants: a float64 literal would promote float32 arithmetic to float64 (half the SIMD width);
@@ -543,7 +544,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
-        g_col = np.empty(TILE_PIX, dt)  # d loss / d colour . this Gaussian's colour, per pixel
+        g_col = np.zeros(TILE_PIX, dt)  # d loss / d extra channels . this Gaussian's, per pixel
         ibuf = np.empty(TILE_PIX, np.int32)
         fbuf = ibuf.view(np.float32)
         kmax = 0
@@ -571,12 +572,14 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 if p0 >= p1:
                     continue
                 _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, fbuf, p0, p1)
-                for p in range(p0, p1):  # the channels meet only in g_col: one array of the rest, not one a channel
-                    g_col[p] = go[0, p] * red + go[1, p] * green + go[2, p] * blue
-                for d in range(RGB, d_ch):
+                for d in range(RGB, d_ch):  # the extra channels' share of g_col; the colour's is added inline
                     c = colors[g, d]
-                    for p in range(p0, p1):
-                        g_col[p] += go[d, p] * c
+                    if d == RGB:
+                        for p in range(p0, p1):
+                            g_col[p] = go[d, p] * c
+                    else:
+                        for p in range(p0, p1):
+                            g_col[p] += go[d, p] * c
                 g_red = ZERO
                 g_green = ZERO
                 g_blue = ZERO
@@ -597,9 +600,10 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                     g_green += go[1, p] * wp
                     g_blue += go[2, p] * wp
                     T[p] = t * (ONE - a * take)
-                    rest[p] -= wp * g_col[p]
+                    gc = go[0, p] * red + go[1, p] * green + go[2, p] * blue + g_col[p]
+                    rest[p] -= wp * gc
                     unclamped = np.float32(op * expo[p] < ALPHA_MAX)     # no gradient through the clamp
-                    gd = (ga[p] * tn[p] * inv + t * take * g_col[p] - inv * rest[p]) * unclamped
+                    gd = (ga[p] * tn[p] * inv + t * take * gc - inv * rest[p]) * unclamped
                     g_op += gd * expo[p]
                     g_sig = gd * a                                         # minus d loss / d sigma
                     dx = mx - px[p]

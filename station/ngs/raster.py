@@ -239,11 +239,11 @@ class _Rasterize(torch.autograd.Function):
                                       height)
         img, t_final, n_proc, taken = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], bins[4], width, height, fast)
         ctx.state = (arrays, background.detach().numpy(), bins, img, t_final, n_proc, taken, width, height, fast)
-        t_final_t = torch.from_numpy(t_final)[..., None]                                   # [H, W, 1]
         img_t = torch.from_numpy(img)
-        if bool(background.any()):  # a black background (the trainer's) costs no image-sized ops
-            img_t = img_t + t_final_t * background
-        return img_t, 1 - t_final_t
+        if ctx.state[1].any():  # a black background (the trainer's) costs no image-sized ops
+            img_t = img_t + torch.from_numpy(t_final)[..., None] * background
+        # numpy, not torch, for the small image-sized ops here: a torch op costs 5x more beside numba's threads
+        return img_t, torch.from_numpy(1 - t_final)[..., None]                              # [H, W, 1]
 
     @staticmethod
     def backward(ctx, g_img: Tensor, g_alpha: Tensor):
