@@ -3,7 +3,7 @@
 
     python bench/raster.py            # headline configs, sweeps at reduced range (~2-3 min)
     python bench/raster.py --full     # sweeps 10k..400k Gaussians and 128^2..1024^2
-    python bench/raster.py --against REV   # step time of this tree against git revision REV, A B A B
+    python bench/raster.py --against REV   # step time of this tree against revision REV, in one process
 
 A step = projection + SH + binning + forward + L1 loss + backward to every parameter (no optimiser).
 Times are medians of wall-clock; CPU time (both threads) is reported beside them because a shared
@@ -19,6 +19,7 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch/numba load their OpenMP runtimes
 
 import argparse  # noqa: E402
+import importlib  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import platform  # noqa: E402
@@ -34,13 +35,13 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, os.environ.get("RASTER_BENCH_TREE", str(ROOT)))  # --against points it at an older tree
+sys.path.insert(0, str(ROOT))
 from station.ngs import _kernels, _project_kernels  # noqa: E402
 from station.ngs.conventions import rgb_to_sh  # noqa: E402
 from station.ngs.raster import _validate, rasterization, set_num_threads  # noqa: E402
 from station.ngs.raster_reference import camera_centres  # noqa: E402
 
-from revisions import unpack, working_tree  # noqa: E402
+from revisions import unpack_as, working_tree  # noqa: E402
 
 REFERENCE_LIMIT = 2_000 * 128 * 128  # Gaussians x pixels beyond which the dense reference is skipped
 
@@ -219,72 +220,70 @@ def step_peak_rss_mb(n: int, width: int, height: int) -> float:
 AB_CONFIGS = ((20_000, 256, 15), (100_000, 512, 5))
 
 
-def trainer_optimizers(params: list[torch.Tensor]) -> list[torch.optim.Optimizer]:
-    """The Adam optimisers the imported tree's trainer builds, over the bench's parameters."""
+def trainer_optimizers(package: str, params: list[torch.Tensor]) -> list[torch.optim.Optimizer]:
+    """The Adam optimisers that `package`'s trainer builds, over the bench's parameters."""
     from types import SimpleNamespace
 
-    from station.ngs.trainer import TrainConfig, Trainer
-
+    trainer = importlib.import_module(f"{package}.ngs.trainer")
     named = dict(zip(("means", "scales", "quats", "opacities", "sh0"), params))
-    host = SimpleNamespace(cfg=TrainConfig(), scene=SimpleNamespace(scene_scale=1.0),
+    host = SimpleNamespace(cfg=trainer.TrainConfig(), scene=SimpleNamespace(scene_scale=1.0),
                            model=SimpleNamespace(params=named))
-    return list(Trainer._make_optimizers(host).values())
+    return list(trainer.Trainer._make_optimizers(host).values())
 
 
-def step_only(n: int, size: int, repeats: int) -> None:
-    """Print one JSON line: median wall and CPU ms of a step (render, loss, backward) and of a training step
-    (the same plus the tree's own Adam), for the tree this process imported."""
-    set_num_threads(2)
-    scene = bench_scene(n, size, size)
-    params = [scene[k].clone().requires_grad_(True) for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
-    optimizers = trainer_optimizers(params)
+class _TreeStep:
+    """One tree's training step on the shared scene: render, L1 loss, backward, and (train) its own Adam."""
 
-    def step() -> None:
-        for p in params:
+    def __init__(self, package: str, scene: dict):
+        self.rasterization = importlib.import_module(f"{package}.ngs.raster").rasterization
+        self.scene = scene
+        self.params = [scene[k].clone().requires_grad_(True)
+                       for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
+        self.optimizers = trainer_optimizers(package, self.params)
+
+    def step(self) -> None:
+        s = self.scene
+        for p in self.params:
             p.grad = None
-        img, _, _ = _render(scene, params, "cpu")
-        (img - scene["target"]).abs().mean().backward()
+        means, log_scales, quats, logits, sh = self.params
+        img, _, _ = self.rasterization(means, quats, log_scales.exp(), torch.sigmoid(logits), sh, s["viewmats"],
+                                       s["Ks"], s["width"], s["height"], sh_degree=s["sh_degree"], backend="cpu")
+        (img - s["target"]).abs().mean().backward()
 
-    def train_step() -> None:
-        step()
-        for opt in optimizers:
+    def train_step(self) -> None:
+        self.step()
+        for opt in self.optimizers:
             opt.step()
-
-    wall, cpu = _timed(step, repeats)
-    train_wall, train_cpu = _timed(train_step, repeats)
-    tree = str(Path(rasterization.__code__.co_filename).resolve().parents[2])
-    print(json.dumps({"step_ms": round(wall, 2), "step_cpu_ms": round(cpu, 2), "train_step_ms": round(train_wall, 2),
-                      "train_step_cpu_ms": round(train_cpu, 2), "tree": tree}))
 
 
 def against(rev: str, rounds: int, out: Path) -> None:
-    """This tree's step against revision `rev`'s, in alternating fresh processes (A B A B) so both see the same
-    machine load; quotes per-config medians and their ratio. Each tree's first process (numba compile) is
-    not counted."""
+    """This tree's step against revision `rev`'s, both imported into this one process (rev's package renamed) and
+    run in turns of a few steps each, so both see the same machine: on a shared host, the same kernels timed in
+    processes minutes apart differ by more than most changes under test. Quotes per-config medians and their
+    ratio; each tree's warm-up (numba compile) is not counted."""
     with tempfile.TemporaryDirectory(prefix="raster-ab-") as old:
-        before = unpack(rev, Path(old))
-        trees = {"before": old, "after": str(ROOT)}
-
-        def run(tree: str, n: int, size: int, repeats: int) -> dict:
-            done = subprocess.run([sys.executable, __file__, "--step-only", str(n), str(size), str(repeats)],
-                                  env={**os.environ, "RASTER_BENCH_TREE": tree}, capture_output=True, text=True,
-                                  check=True)
-            return json.loads(done.stdout.strip().splitlines()[-1]) | {"load_1min": round(os.getloadavg()[0], 2)}
-
-        for tree in trees.values():
-            run(tree, 2_000, 128, 1)
+        before = unpack_as(rev, Path(old), "station_before")
+        sys.path.insert(0, old)
+        packages = {"before": "station_before", "after": "station"}
         rows = []
         keys = ("step_ms", "step_cpu_ms", "train_step_ms", "train_step_cpu_ms")
         print("medians, ms; 'train' adds each tree's own Adam step; ratios are after / before")
         print(f"{'gaussians':>9} {'size':>9} {'step wall':>15} {'ratio':>6} {'step cpu':>15} {'ratio':>6} "
               f"{'train wall':>15} {'ratio':>6} {'train cpu':>15} {'ratio':>6} {'load':>5}")
         for n, size, repeats in AB_CONFIGS:
+            scene = bench_scene(n, size, size)
+            trees = {name: _TreeStep(package, scene) for name, package in packages.items()}
+            for tree in trees.values():
+                tree.train_step()
             runs = {name: [] for name in trees}
             for _ in range(rounds):
                 for name, tree in trees.items():
-                    runs[name].append(run(tree, n, size, repeats))
-            med = {(name, key): float(np.median([r[key] for r in runs[name] if key in r]))
-                   for name in trees for key in keys}
+                    step_ms, step_cpu_ms = _timed(tree.step, repeats)
+                    train_ms, train_cpu_ms = _timed(tree.train_step, repeats)
+                    runs[name].append({"step_ms": round(step_ms, 2), "step_cpu_ms": round(step_cpu_ms, 2),
+                                       "train_step_ms": round(train_ms, 2), "train_step_cpu_ms": round(train_cpu_ms, 2),
+                                       "load_1min": round(os.getloadavg()[0], 2)})
+            med = {(name, key): float(np.median([r[key] for r in runs[name]])) for name in trees for key in keys}
             ratio = {key: round(med["after", key] / med["before", key], 3) for key in keys}
             load = float(np.median([r["load_1min"] for name in trees for r in runs[name]]))
             row = {"gaussians": n, "width": size, "height": size, "runs": runs,
@@ -299,7 +298,7 @@ def against(rev: str, rounds: int, out: Path) -> None:
                 + f" {load:>5.1f}", flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"benchmark": "raster", "before": before, "after": working_tree(),
-                               "rounds": rounds, "threads": 2,
+                               "rounds": rounds, "threads": 2, "method": "one process, trees in turns",
                                "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
                                "configs": rows}, indent=2) + "\n")
     print(f"wrote {out}")
@@ -313,16 +312,13 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="default bench/results/raster.json "
                         "(raster_ab.json with --against)")
     parser.add_argument("--against", metavar="REV", help="time this tree's step against git revision REV")
-    parser.add_argument("--rounds", type=int, default=4, help="with --against: A B pairs per config")
-    parser.add_argument("--step-only", nargs=3, type=int, metavar=("N", "SIZE", "REPEATS"), help=argparse.SUPPRESS)
+    parser.add_argument("--rounds", type=int, default=12, help="with --against: turns of each tree per config")
     args = parser.parse_args()
-    if args.step_only:
-        return step_only(*args.step_only)
     results = Path(__file__).parent / "results"
+    set_num_threads(args.threads)
     if args.against:
         return against(args.against, args.rounds, args.out or results / "raster_ab.json")
     args.out = args.out or results / "raster.json"
-    set_num_threads(args.threads)
     headline = [(20_000, 256, 256, 3), (100_000, 512, 512, 3), (2_000, 128, 128, 3)]
     counts = [10_000, 20_000, 50_000, 100_000, 200_000, 400_000] if args.full else [10_000, 50_000]
     sizes = [128, 256, 512, 1024] if args.full else [128, 512]

@@ -214,7 +214,7 @@ def raster_ab_section(name: str, data: dict) -> Section:
                f"(×{c['median'][f'after_{key}'] / c['median'][f'before_{key}']:.2f})" for key, _ in keys]
             + [num(c["median_load_1min"], 1)] for c in data["configs"]]
     lines = [f"One training step of `bench/raster.py`'s scene, {data['threads']} threads: revision {data['before']} "
-             f"against {data['after']}, {data['rounds']} rounds of alternating fresh processes (A B A B), so both "
+             f"against {data['after']}, both imported into one process and run in {data['rounds']} turns each, so both "
              "see the same machine; medians in ms, after / before in brackets.", ""]
     lines += table(["Gaussians", "image"] + [label for _, label in keys] + ["1-min load"], rows)
     return lines, {}

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -14,6 +16,20 @@ def unpack(rev: str, dest: Path) -> str:
     commit = short_hash(rev)
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", commit], capture_output=True, check=True).stdout
     subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    return commit
+
+
+def unpack_as(rev: str, dest: Path, package: str) -> str:
+    """Revision `rev`'s `station` package into `dest` as `package`, its own imports renamed to match, so that one
+    process can import both trees side by side; returns its short commit hash."""
+    with_files = dest / "tree"
+    with_files.mkdir()
+    commit = unpack(rev, with_files)
+    shutil.move(with_files / "station", dest / package)
+    shutil.rmtree(with_files)
+    imports = re.compile(r"^(\s*)(from|import) station\b", re.MULTILINE)
+    for source in (dest / package).rglob("*.py"):
+        source.write_text(imports.sub(rf"\1\2 {package}", source.read_text()))
     return commit
 
 
