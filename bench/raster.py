@@ -68,10 +68,19 @@ def bench_scene(n: int, width: int, height: int, sh_degree: int = 3, seed: int =
     }
 
 
-def _render(scene: dict, params: list[torch.Tensor], backend: str):
+def _render(scene: dict, params: list[torch.Tensor], backend: str, rasterize=rasterization):
+    """The scene through `rasterize`: this tree's `rasterization`, or an older tree's under `--against`."""
     means, log_scales, quats, logits, sh = params
-    return rasterization(means, quats, log_scales.exp(), torch.sigmoid(logits), sh, scene["viewmats"], scene["Ks"],
-                         scene["width"], scene["height"], sh_degree=scene["sh_degree"], backend=backend)
+    return rasterize(means, quats, log_scales.exp(), torch.sigmoid(logits), sh, scene["viewmats"], scene["Ks"],
+                     scene["width"], scene["height"], sh_degree=scene["sh_degree"], backend=backend)
+
+
+def _step(scene: dict, params: list[torch.Tensor], backend: str = "cpu", rasterize=rasterization) -> None:
+    """One step without the optimiser: render, L1 loss against the scene's target, backward to every parameter."""
+    for p in params:
+        p.grad = None
+    img, _, _ = _render(scene, params, backend, rasterize)
+    (img - scene["target"]).abs().mean().backward()
 
 
 def _timed(fn, repeats: int) -> tuple[float, float]:
@@ -90,22 +99,16 @@ def measure(n: int, width: int, height: int, sh_degree: int, threads: int, repea
     scene = bench_scene(n, width, height, sh_degree)
     params = [scene[k].clone().requires_grad_(True) for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
 
-    def step(backend: str = "cpu") -> None:
-        for p in params:
-            p.grad = None
-        img, _, _ = _render(scene, params, backend)
-        (img - scene["target"]).abs().mean().backward()
-
     def forward() -> None:
         with torch.no_grad():
             _render(scene, params, "cpu")
 
-    step_ms, step_cpu_ms = _timed(step, repeats)
+    step_ms, step_cpu_ms = _timed(lambda: _step(scene, params), repeats)
     forward_ms, _ = _timed(forward, repeats)
     parts = breakdown(scene, params, (step_ms, step_cpu_ms), repeats)
     reference_ms = None
     if n * width * height <= REFERENCE_LIMIT:
-        reference_ms, _ = _timed(lambda: step("torch"), max(1, repeats // 3))
+        reference_ms, _ = _timed(lambda: _step(scene, params, "torch"), max(1, repeats // 3))
     return {"gaussians": n, "width": width, "height": height, "sh_degree": sh_degree, "threads": threads,
             "step_ms": round(step_ms, 2), "step_cpu_ms": round(step_cpu_ms, 2), "forward_ms": round(forward_ms, 2),
             "reference_step_ms": None if reference_ms is None else round(reference_ms, 2),
@@ -242,13 +245,7 @@ class _TreeStep:
         self.optimizers = trainer_optimizers(package, self.params)
 
     def step(self) -> None:
-        s = self.scene
-        for p in self.params:
-            p.grad = None
-        means, log_scales, quats, logits, sh = self.params
-        img, _, _ = self.rasterization(means, quats, log_scales.exp(), torch.sigmoid(logits), sh, s["viewmats"],
-                                       s["Ks"], s["width"], s["height"], sh_degree=s["sh_degree"], backend="cpu")
-        (img - s["target"]).abs().mean().backward()
+        _step(self.scene, self.params, "cpu", self.rasterization)
 
     def train_step(self) -> None:
         self.step()

@@ -3,11 +3,10 @@
 Layout follows gsplat: every (tile, Gaussian) intersection sits in a per-tile, depth-sorted list. Tiles
 run in parallel (prange). A tile's pixels are stored in strips, each row-major, so the rows of the strips a
 Gaussian reaches are one contiguous run; the loop over them is branch-free (0/1 masks, not selects) and LLVM
-vectorises it. `fast=True` uses a polynomial exp (rel. error ~6e-7, float32)
-because math.exp blocks vectorisation; float64 callers (gradcheck) pass fast=False for math.exp. The
-forward records the rows of each strip an intersection composited in; the backward walks only those, gives
-every intersection its own gradient slot and reduces them per Gaussian in a fixed order: no atomics,
-deterministic.
+vectorises it. `fast=True` uses a polynomial exp (rel. error ~6e-7, float32) because math.exp blocks
+vectorisation; float64 callers (gradcheck) pass fast=False for math.exp. The forward records the rows of
+each strip an intersection composited in; the backward walks only those, gives every intersection its own
+gradient slot and reduces them per Gaussian in a fixed order: no atomics, deterministic.
 Helpers that take arrays run without NRT (`_nrt=False`; none allocates): with it, every array argument of a
 call in the per-intersection loops costs an atomic reference-count pair.
 Keep every kernel and its helpers in this one module (numba's cache key).
@@ -574,12 +573,9 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, fbuf, p0, p1)
                 for d in range(RGB, d_ch):  # the extra channels' share of g_col; the colour's is added inline
                     c = colors[g, d]
-                    if d == RGB:
-                        for p in range(p0, p1):
-                            g_col[p] = go[d, p] * c
-                    else:
-                        for p in range(p0, p1):
-                            g_col[p] += go[d, p] * c
+                    keep = ZERO if d == RGB else ONE  # the first drops the last intersection's share
+                    for p in range(p0, p1):
+                        g_col[p] = keep * g_col[p] + go[d, p] * c
                 g_red = ZERO
                 g_green = ZERO
                 g_blue = ZERO

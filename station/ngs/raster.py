@@ -238,11 +238,12 @@ class _Rasterize(torch.autograd.Function):
         bins = _kernels.bin_gaussians(arrays[0], arrays[1], arrays[3], radii.numpy(), depths.detach().numpy(), width,
                                       height)
         img, t_final, n_proc, taken = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], bins[4], width, height, fast)
-        ctx.state = (arrays, background.detach().numpy(), bins, img, t_final, n_proc, taken, width, height, fast)
+        bg = background.detach().numpy()
+        ctx.state = (arrays, bg, bins, img, t_final, n_proc, taken, width, height, fast)
         img_t = torch.from_numpy(img)
-        if ctx.state[1].any():  # a black background (the trainer's) costs no image-sized ops
+        if bg.any():  # a black background (the trainer's) costs no image-sized ops
             img_t = img_t + torch.from_numpy(t_final)[..., None] * background
-        # numpy, not torch, for the small image-sized ops here: a torch op costs 5x more beside numba's threads
+        # numpy, not torch, for the small image-sized ops here: beside numba's threads a torch op costs more
         return img_t, torch.from_numpy(1 - t_final)[..., None]                              # [H, W, 1]
 
     @staticmethod
