@@ -195,11 +195,10 @@ def test_the_fast_exp_is_within_1e6_of_exp_and_unbiased_wherever_alpha_can_reach
     (p(sigma / 8) ** 8, tried) lowered DTU scan65's held-out SOS in every run: real_dtu_scan65_ngs_at_748e147*."""
     radius = np.sqrt(np.concatenate([np.linspace(0, 6, 200_001), np.geomspace(6, 1e6, 1_000)])).astype(np.float32)
     n = radius.size
-    alpha, expo, bits = np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.int32)
+    alpha, expo = np.empty(n, np.float32), np.empty(n, np.float32)
     # one Gaussian at the origin with conic (2, 0, 2): sigma is the squared distance of each "pixel" on the x axis
     _kernels._alphas(np.float32(0), np.float32(0), np.float32(2), np.float32(0), np.float32(2), np.float32(1), -radius,
-                     np.zeros(n, np.float32), alpha, expo, True, bits, bits.view(np.float32), np.uint64(0),
-                     np.uint64(n))
+                     np.zeros(n, np.float32), alpha, expo, True, np.uint64(0), np.uint64(n))
     sigma = radius.astype(np.float64) ** 2
     near = sigma <= 6
     error = expo[near] / np.exp(-sigma[near]) - 1

@@ -17,7 +17,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from llvmlite import ir
 from numba import njit, prange
+from numba.core import types
+from numba.extending import intrinsic
 
 from station.ngs import conventions
 from station.ngs._parallel import PRANGE_ONLY
@@ -162,6 +165,7 @@ def _pixels(s, r0, r1):
 
 U8, RADIX_MASK = np.uint64(8), np.uint64(255)
 U1 = np.uint64(1)
+I32_MAX = np.int32(2**31 - 1)
 
 
 @njit(cache=True)
@@ -289,10 +293,21 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     return tile_offsets, isect_gid, gauss_offsets, gauss_slots, extents
 
 
+@intrinsic
+def _float32_from_bits(typingctx, bits):
+    """The float32 whose bit pattern is the int32 `bits`: how the polynomial exp builds 2**k. A bitcast, where an
+    int32 buffer viewed as float32 costs a store and a reload per pixel."""
+    if bits != types.int32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.FloatType())
+    return types.float32(types.int32), codegen
+
+
 @njit(fastmath=True, cache=True, _nrt=False)
-def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, fbuf, p0, p1):
-    """Alpha and exp(-sigma) of one Gaussian over a tile's pixels [p0, p1); sigma < 0 gives alpha 0. `fbuf` is
-    `ibuf` viewed as float32, made once per tile by the caller: a view made here would allocate on every call."""
+def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, p0, p1):
+    """Alpha and exp(-sigma) of one Gaussian over a tile's pixels [p0, p1); sigma < 0 gives alpha 0."""
     if fast:
         for p in range(p0, p1):
             dx = mx - px[p]
@@ -303,10 +318,8 @@ def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, fbuf, p0, p
             f = (y - kf - HALF) * LN2
             poly = POLY[0] + f * (POLY[1] + f * (POLY[2] + f * (POLY[3] + f * (POLY[4] + f * (POLY[5] + f * (
                 POLY[6] + f * POLY[7]))))))
-            ibuf[p] = (np.int32(kf) + np.int32(127)) << np.int32(23)
-            expo[p] = poly * SQRT2 if sig >= ZERO else ZERO
-        for p in range(p0, p1):
-            expo[p] *= fbuf[p]
+            two_k = _float32_from_bits(np.int32((np.int32(kf) + np.int32(127)) << np.int32(23)))
+            expo[p] = poly * SQRT2 * two_k if sig >= ZERO else ZERO
             alpha[p] = min(ALPHA_MAX, op * expo[p])
     else:
         for p in range(p0, p1):
@@ -354,13 +367,13 @@ def _live_rows(live, rows):
 
 
 @njit(cache=True, _nrt=False)
-def _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast, ibuf, fbuf):
+def _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast):
     """Alphas of Gaussian g over its rows [r0, r1) of strip s that still hold a live pixel (`_live_rows`) ->
     those pixels [p0, p1), empty if none."""
     p0, p1 = _pixels(s, max(r0, rows[s, 0]), min(r1, rows[s, 1]))
     if p0 < p1:
         _alphas(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g], px, py, alpha,
-                expo, fast, ibuf, fbuf, p0, p1)
+                expo, fast, p0, p1)
     return p0, p1
 
 
@@ -392,8 +405,6 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
-        ibuf = np.empty(TILE_PIX, np.int32)
-        fbuf = ibuf.view(np.float32)
         for p in range(TILE_PIX):
             live[p] = 1.0 if inside[p] else 0.0
         rows = np.empty((STRIPS, 2), np.int64)  # per strip, the rows that still hold a live pixel
@@ -404,11 +415,10 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
             k32 = np.int32(k)
             red, green, blue = colors[g, 0], colors[g, 1], colors[g, 2]
             for s in range(s0, s1):
-                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast,
-                                      ibuf, fbuf)
+                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast)
                 if p0 >= p1:
                     continue
-                first, last = p1, p0  # the first and one past the last pixel composited: min/max reductions
+                first, last = I32_MAX, np.int32(-1)  # the first and last pixel composited: int32 min/max reductions
                 for p in range(p0, p1):
                     a = alpha[p]
                     t = T[p]
@@ -419,8 +429,9 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
                     T[p] = t * (ONE - a * take)
                     live[p] -= valid - take                             # valid, not taken: the pixel stops here
                     stop_at[p] = k32 if valid > take else stop_at[p]
-                    first = min(first, p if take > ZERO else p1)
-                    last = max(last, p + U1 if take > ZERO else p0)
+                    q = np.int32(p)
+                    first = min(first, q if take > ZERO else I32_MAX)
+                    last = max(last, q if take > ZERO else np.int32(-1))
                     acc[0, p] += red * wp                               # the colour here, the other channels after
                     acc[1, p] += green * wp
                     acc[2, p] += blue * wp
@@ -462,8 +473,6 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
         median = np.full(TILE_PIX, np.inf, dt)
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
-        ibuf = np.empty(TILE_PIX, np.int32)
-        fbuf = ibuf.view(np.float32)
         t_level = np.ones(TILE_PIX, dt)
         for p in range(TILE_PIX):
             live[p] = 1.0 if inside[p] else 0.0
@@ -476,8 +485,7 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
             r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
             z = depths[g]
             for s in range(s0, s1):
-                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast,
-                                      ibuf, fbuf)
+                p0, p1 = _live_alphas(means2d, conics, opacities, g, s, r0, r1, rows, px, py, alpha, expo, fast)
                 if p0 >= p1:
                     continue
                 for p in range(p0, p1):
@@ -501,12 +509,12 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
 @njit(cache=True, _nrt=False)
 def _record_taken(first, last, s, row):
     """Note in `row` (an intersection's `taken`) the rows of strip s from the one holding pixel `first` to the one
-    holding pixel `last` - 1: those it composited in. Two index reductions in the compositing loop find them,
+    holding pixel `last`: those it composited in. Two index reductions in the compositing loop find them,
     cheaper than summing each row's weights after it."""
-    if first < last:
+    if first <= last:
         base = s * STRIP_PIX
         row[2 * s] = (int(first) - base) // STRIP
-        row[2 * s + 1] = (int(last) - 1 - base) // STRIP + 1
+        row[2 * s + 1] = (int(last) - base) // STRIP + 1
 
 
 @njit(cache=True, _nrt=False)
@@ -544,8 +552,6 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
         g_col = np.zeros(TILE_PIX, dt)  # d loss / d extra channels . this Gaussian's, per pixel
-        ibuf = np.empty(TILE_PIX, np.int32)
-        fbuf = ibuf.view(np.float32)
         kmax = 0
         for p in range(TILE_PIX):
             if inside[p]:
@@ -570,7 +576,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 p0, p1 = _taken_span(taken, i, s)
                 if p0 >= p1:
                     continue
-                _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, ibuf, fbuf, p0, p1)
+                _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, p0, p1)
                 for d in range(RGB, d_ch):  # the extra channels' share of g_col; the colour's is added inline
                     c = colors[g, d]
                     keep = ZERO if d == RGB else ONE  # the first drops the last intersection's share
