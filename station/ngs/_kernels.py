@@ -23,7 +23,7 @@ from numba.core import types
 from numba.extending import intrinsic
 
 from station.ngs import conventions
-from station.ngs._parallel import PRANGE_ONLY
+from station.ngs._parallel import PRANGE_ONLY, NoAlias
 from station.ngs.conventions import TILE
 
 TILE_PIX = TILE * TILE
@@ -517,11 +517,85 @@ def _record_taken(first, last, s, row):
         row[2 * s + 1] = (int(last) - base) // STRIP + 1
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, _nrt=False, forceinline=True)
 def _taken_span(taken, i, s):
     """Tile-local pixels [p0, p1) of the rows in strip s that intersection i composited in (`rasterize_fwd`);
     empty if none."""
     return _pixels(s, int(taken[i, 2 * s]), int(taken[i, 2 * s + 1]))
+
+
+@njit(fastmath=True, cache=True, _nrt=False, error_model="numpy", pipeline_class=NoAlias)
+def _bwd_tile(start, kmax, means2d, conics, colors, opacities, isect_gid, taken, slots, px, py, T, tn, limit, ga, go,
+              rest, alpha, expo, w, g_col, fast):
+    """The backward of one tile's first `kmax` intersections into their `slots` rows, on the tile's per-pixel
+    state. Its own function so that its arrays are `noalias`: in the prange body LLVM checks them for overlap
+    before every strip's vector loop."""
+    d_ch = colors.shape[1]
+    for k in range(kmax):
+        i = start + k
+        k32 = np.int32(k)
+        g = isect_gid[i]
+        mx, my = means2d[g, 0], means2d[g, 1]
+        ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+        op = opacities[g]
+        red, green, blue = colors[g, 0], colors[g, 1], colors[g, 2]
+        for s in range(STRIPS):
+            p0, p1 = _taken_span(taken, i, s)
+            if p0 >= p1:
+                continue
+            _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, p0, p1)
+            for d in range(RGB, d_ch):  # the extra channels' share of g_col; the colour's is added inline
+                c = colors[g, d]
+                keep = ZERO if d == RGB else ONE  # the first drops the last intersection's share
+                for p in range(p0, p1):
+                    g_col[p] = keep * g_col[p] + go[d, p] * c
+            g_red = ZERO
+            g_green = ZERO
+            g_blue = ZERO
+            g_op = ZERO
+            s_x = ZERO  # sums of d loss / d sigma times dx, dy and their products: the conic's terms come after
+            s_y = ZERO
+            s_xx = ZERO
+            s_xy = ZERO
+            s_yy = ZERO
+            for p in range(p0, p1):  # one pass: no per-pixel intermediates stored and read back
+                a = alpha[p]
+                t = T[p]
+                take = np.float32(a >= ALPHA_MIN) * np.float32(k32 < limit[p])  # a 0/1 mask: it vectorises
+                inv = take / (ONE - a)
+                wp = a * t * take
+                w[p] = wp
+                g_red += go[0, p] * wp
+                g_green += go[1, p] * wp
+                g_blue += go[2, p] * wp
+                T[p] = t * (ONE - a * take)
+                gc = go[0, p] * red + go[1, p] * green + go[2, p] * blue + g_col[p]
+                rest[p] -= wp * gc
+                unclamped = np.float32(op * expo[p] < ALPHA_MAX)     # no gradient through the clamp
+                gd = (ga[p] * tn[p] * inv + t * take * gc - inv * rest[p]) * unclamped
+                g_op += gd * expo[p]
+                g_sig = gd * a                                         # minus d loss / d sigma
+                dx = mx - px[p]
+                dy = my - py[p]
+                s_x += g_sig * dx
+                s_y += g_sig * dy
+                s_xx += g_sig * dx * dx
+                s_xy += g_sig * dx * dy
+                s_yy += g_sig * dy * dy
+            slots[i, 5] += g_red
+            slots[i, 6] += g_green
+            slots[i, 7] += g_blue
+            for d in range(RGB, d_ch):
+                acc_c = ZERO
+                for p in range(p0, p1):
+                    acc_c += go[d, p] * w[p]
+                slots[i, 5 + d] += acc_c
+            slots[i, 0] -= ca * s_x + cb * s_y
+            slots[i, 1] -= cc * s_y + cb * s_x
+            slots[i, 2] -= HALF * s_xx
+            slots[i, 3] -= s_xy
+            slots[i, 4] -= HALF * s_yy
+            slots[i, 5 + d_ch] += g_op
 
 
 @njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
@@ -552,7 +626,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
         g_col = np.zeros(TILE_PIX, dt)  # d loss / d extra channels . this Gaussian's, per pixel
-        kmax = 0
+        kmax = np.int64(0)
         for p in range(TILE_PIX):
             if inside[p]:
                 x = int(px[p])
@@ -564,71 +638,8 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 for d in range(d_ch):
                     go[d, p] = g_feats[y, x, d]
                     rest[p] += g_feats[y, x, d] * (feats[y, x, d] + t_final[y, x] * background[d])
-        for k in range(kmax):
-            i = start + k
-            k32 = np.int32(k)
-            g = isect_gid[i]
-            mx, my = means2d[g, 0], means2d[g, 1]
-            ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
-            op = opacities[g]
-            red, green, blue = colors[g, 0], colors[g, 1], colors[g, 2]
-            for s in range(STRIPS):
-                p0, p1 = _taken_span(taken, i, s)
-                if p0 >= p1:
-                    continue
-                _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, p0, p1)
-                for d in range(RGB, d_ch):  # the extra channels' share of g_col; the colour's is added inline
-                    c = colors[g, d]
-                    keep = ZERO if d == RGB else ONE  # the first drops the last intersection's share
-                    for p in range(p0, p1):
-                        g_col[p] = keep * g_col[p] + go[d, p] * c
-                g_red = ZERO
-                g_green = ZERO
-                g_blue = ZERO
-                g_op = ZERO
-                s_x = ZERO  # sums of d loss / d sigma times dx, dy and their products: the conic's terms come after
-                s_y = ZERO
-                s_xx = ZERO
-                s_xy = ZERO
-                s_yy = ZERO
-                for p in range(p0, p1):  # one pass: no per-pixel intermediates stored and read back
-                    a = alpha[p]
-                    t = T[p]
-                    take = np.float32(a >= ALPHA_MIN) * np.float32(k32 < limit[p])  # a 0/1 mask: it vectorises
-                    inv = take / (ONE - a)
-                    wp = a * t * take
-                    w[p] = wp
-                    g_red += go[0, p] * wp
-                    g_green += go[1, p] * wp
-                    g_blue += go[2, p] * wp
-                    T[p] = t * (ONE - a * take)
-                    gc = go[0, p] * red + go[1, p] * green + go[2, p] * blue + g_col[p]
-                    rest[p] -= wp * gc
-                    unclamped = np.float32(op * expo[p] < ALPHA_MAX)     # no gradient through the clamp
-                    gd = (ga[p] * tn[p] * inv + t * take * gc - inv * rest[p]) * unclamped
-                    g_op += gd * expo[p]
-                    g_sig = gd * a                                         # minus d loss / d sigma
-                    dx = mx - px[p]
-                    dy = my - py[p]
-                    s_x += g_sig * dx
-                    s_y += g_sig * dy
-                    s_xx += g_sig * dx * dx
-                    s_xy += g_sig * dx * dy
-                    s_yy += g_sig * dy * dy
-                slots[i, 5] += g_red
-                slots[i, 6] += g_green
-                slots[i, 7] += g_blue
-                for d in range(RGB, d_ch):
-                    acc_c = ZERO
-                    for p in range(p0, p1):
-                        acc_c += go[d, p] * w[p]
-                    slots[i, 5 + d] += acc_c
-                slots[i, 0] -= ca * s_x + cb * s_y
-                slots[i, 1] -= cc * s_y + cb * s_x
-                slots[i, 2] -= HALF * s_xx
-                slots[i, 3] -= s_xy
-                slots[i, 4] -= HALF * s_yy
-                slots[i, 5 + d_ch] += g_op
+        _bwd_tile(start, kmax, means2d, conics, colors, opacities, isect_gid, taken, slots, px, py, T, tn, limit, ga,
+                  go, rest, alpha, expo, w, g_col, fast)
     return slots
 
 

@@ -17,23 +17,12 @@ import math
 
 import numpy as np
 from numba import njit, prange
-from numba.core.compiler import Compiler
 
-from station.ngs._parallel import PRANGE_ONLY
+from station.ngs._parallel import PRANGE_ONLY, NoAlias
 from station.ngs.conventions import EPS2D, SH_C0, SH_C1, SH_C2, SH_C3
 
 C20, C21, C22, C23, C24 = SH_C2
 C30, C31, C32, C33, C34, C35, C36 = SH_C3
-
-
-class _NoAlias(Compiler):
-    """numba's pipeline with LLVM `noalias` on array arguments, which numba gives a prange body it finds free of
-    aliases but offers no option for. No array a chunk function writes overlaps another it gets; without the flag
-    LLVM reloads inputs after every store."""
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.state.flags.noalias = True
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
@@ -182,7 +171,7 @@ def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, ca
         colors[c, g, 2] = max(blue + 0.5, 0.0)
 
 
-@njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=_NoAlias)
+@njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=NoAlias)
 def _project_chunk(c, start, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far,
                    means2d, conics, depths, radii, colors, Rw, scratch):
     """`_project_one` for Gaussians start .. start + CHUNK - 1 (fewer at the end) in camera c."""
@@ -355,7 +344,7 @@ def _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
     return False
 
 
-@njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=_NoAlias)
+@njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=NoAlias)
 def _project_bwd_chunk(start, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii,
                        colors, Rws, upstream, want_pose, outs, g_quats, g_scales, Rw, scratch):
     """The backward of Gaussians start .. start + CHUNK - 1 (fewer at the end) over every camera; arguments as
