@@ -49,7 +49,7 @@ def num(value: object, digits: int = 3) -> str:
 
 
 def kind_of(data: dict) -> str:
-    if data.get("benchmark") in ("demo", "plans"):
+    if data.get("benchmark") in ("demo", "plans", "thread_pools"):
         return data["benchmark"]
     if data.get("benchmark") == "raster" and "before" in data:
         return "raster_ab"
@@ -220,6 +220,18 @@ def raster_ab_section(name: str, data: dict) -> Section:
     return lines, {}
 
 
+def thread_pools_section(name: str, data: dict) -> Section:
+    rows = [[c["way"], c["threads"], c["layer"], c["torch_threads"], num(c["step_ms"], 1), num(c["ratio_vs_peer"], 2),
+             num(c["mean_step_ms"], 1), num(c["mean_ratio_vs_peer"], 2), num(c["load_1min"], 2)] for c in data["configs"]]
+    lines = [f"`bench/raster.py`'s step ({num(data['gaussians'])} Gaussians, {data['size'][0]}²) inside a batch stage "
+             "process forked from the local executor's forkserver, its pools sized by `limit_threads` or by the peer "
+             "(numba's workqueue layer, the way before); medians over rounds run in turns, in ms. Same step, so no "
+             "error axis.", ""]
+    lines += table(["way", "threads", "numba layer", "torch threads", "median ms", "× peer", "mean ms", "× peer",
+                    "1-min load"], rows)
+    return lines, {}
+
+
 def mesh_section(name: str, data: dict) -> Section:
     rows = [[method, num(m["seconds"], 1), num(m["faces"]), num(m["watertight"]),
              f"{100 * m['chamfer_fraction_of_diagonal']:.2f} %", num(m["fscore"]), f"{100 * m['volume_rel_error']:+.1f} %"]
@@ -347,6 +359,7 @@ SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
     "mesh": ("Mesh surface", mesh_section),
     "fidelity": ("Training views against the truth", fidelity_section),
     "batch": ("Batch throughput", batch_section),
+    "thread_pools": ("Thread pools in a stage process", thread_pools_section),
     "batch_nodes": ("Batch throughput", batch_nodes_section),
     "other": ("Other results", other_section),
 }

@@ -78,19 +78,17 @@ def classify(exc: BaseException) -> OutcomeKind:
 def limit_threads(threads: int) -> None:
     """Keep N stage processes on N*threads cores: oversubscribed torch/numba threads crawl.
 
-    Numba's OpenMP threading layer, started in a process forked from one that had imported torch
-    (the local executor's forkserver), resets torch's OpenMP thread count to all cores: measured
-    7x slower training on 2 cores. The workqueue layer leaves it alone; a stage process calls numba
-    from one thread only, which is all workqueue needs. It must be chosen before the first
-    parallel kernel runs in the process. OMP_NUM_THREADS carries the share to the process stage's own
-    worker processes (station/process/workers.py), which it also caps."""
+    numba's thread pool shares torch's OpenMP runtime and, when it starts, sets that runtime's thread
+    count to all cores: so numba's pool is started first and torch's count set after it. (The workqueue
+    layer avoided the reset, at a slower training step: bench/results/thread_pools.json.)
+    OMP_NUM_THREADS carries the share to the process stage's own worker processes
+    (station/process/workers.py), which it also caps."""
     import cv2
     import numba
     import torch
 
-    numba.config.THREADING_LAYER = "workqueue"
-    torch.set_num_threads(threads)
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    torch.set_num_threads(threads)
     cv2.setNumThreads(threads)
     os.environ["OMP_NUM_THREADS"] = str(threads)
 
