@@ -222,7 +222,8 @@ def raster_ab_section(name: str, data: dict) -> Section:
 
 def thread_pools_section(name: str, data: dict) -> Section:
     rows = [[c["way"], c["threads"], c["layer"], c["torch_threads"], num(c["step_ms"], 1), num(c["ratio_vs_peer"], 2),
-             num(c["mean_step_ms"], 1), num(c["mean_ratio_vs_peer"], 2), num(c["load_1min"], 2)] for c in data["configs"]]
+             num(c["mean_step_ms"], 1), num(c["mean_ratio_vs_peer"], 2), num(c["load_1min"], 2)]
+            for c in data["configs"]]
     lines = [f"`bench/raster.py`'s step ({num(data['gaussians'])} Gaussians, {data['size'][0]}²) inside a batch stage "
              "process forked from the local executor's forkserver, its pools sized by `limit_threads` or by the peer "
              "(numba's workqueue layer, the way before); medians over rounds run in turns, in ms. Same step, so no "

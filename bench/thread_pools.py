@@ -3,9 +3,10 @@
 A batch stage runs in a process forked from the local executor's forkserver, which has imported
 torch. There `stage_run.limit_threads` sizes numba's and torch's pools; the peer is the way it did
 before: numba's workqueue threading layer, chosen because numba's OpenMP pool, started after torch's
-count was set, resets that count to all cores. Each configuration runs in its own stage-like process
-in turns, `--rounds` times, and times `bench/raster.py`'s step (median and mean: a training run pays the mean) (20k Gaussians, 256², SH3), reporting the threading layer and
-torch's thread count as the step saw them. No error axis: both compute the same step.
+count was set, resets that count to all cores. Each configuration runs in its own stage-like process,
+in turns, `--rounds` times, and times `bench/raster.py`'s step (20k Gaussians, 256², SH3): median and
+mean, since a training run pays the mean. The threading layer and torch's thread count are reported as
+the step saw them. No error axis: both compute the same step.
 
     python bench/thread_pools.py [--gaussians 20000] [--size 256] [--repeats 60] [--rounds 3]
 """
@@ -41,7 +42,7 @@ def _peer_limit_threads(threads: int) -> None:
 
 
 def _time_step(way: str, threads: int, gaussians: int, size: int, repeats: int, result) -> None:
-    """In a stage-like process: size the pools `way`, then median ms of the bench step."""
+    """In a stage-like process: size the pools `way`, then send the bench step's median and mean ms."""
     import numba
     import torch
 
@@ -107,7 +108,8 @@ def main() -> None:
         table.add_column(column)
     for c in configs:
         table.add_row(c["way"], str(c["threads"]), c["layer"], str(c["torch_threads"]), f"{c['step_ms']:.2f}",
-                      f"{c['ratio_vs_peer']:.2f}", f"{c['mean_step_ms']:.2f}", f"{c['mean_ratio_vs_peer']:.2f}", f"{c['load_1min']:.2f}")
+                      f"{c['ratio_vs_peer']:.2f}", f"{c['mean_step_ms']:.2f}", f"{c['mean_ratio_vs_peer']:.2f}",
+                      f"{c['load_1min']:.2f}")
     Console().print(table)
     print(f"wrote {args.out}")
 

@@ -78,17 +78,15 @@ def classify(exc: BaseException) -> OutcomeKind:
 def limit_threads(threads: int) -> None:
     """Keep N stage processes on N*threads cores: oversubscribed torch/numba threads crawl.
 
-    numba's thread pool shares torch's OpenMP runtime and, when it starts, sets that runtime's thread
-    count to all cores: so numba's pool is started first and torch's count set after it. (The workqueue
-    layer avoided the reset, at a slower training step: bench/results/thread_pools.json.)
-    OMP_NUM_THREADS carries the share to the process stage's own worker processes
-    (station/process/workers.py), which it also caps."""
+    numba keeps its OpenMP threading layer: the workqueue layer, once chosen here to dodge OpenMP's reset
+    of torch's count (`set_num_threads` orders the two instead), made a training step slower
+    (bench/results/thread_pools.json). OMP_NUM_THREADS carries the share to the process stage's own
+    worker processes (station/process/workers.py), which it also caps."""
     import cv2
-    import numba
-    import torch
 
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-    torch.set_num_threads(threads)
+    from station.ngs.raster import set_num_threads
+
+    set_num_threads(threads)
     cv2.setNumThreads(threads)
     os.environ["OMP_NUM_THREADS"] = str(threads)
 

@@ -164,7 +164,6 @@ def _pixels(s, r0, r1):
 
 
 U8, RADIX_MASK = np.uint64(8), np.uint64(255)
-U1 = np.uint64(1)
 I32_MAX = np.int32(2**31 - 1)
 
 
@@ -626,7 +625,7 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
         g_col = np.zeros(TILE_PIX, dt)  # d loss / d extra channels . this Gaussian's, per pixel
-        kmax = np.int64(0)
+        kmax = np.int64(0)  # not a literal 0: numba would compile _bwd_tile once more for Literal[int](0)
         for p in range(TILE_PIX):
             if inside[p]:
                 x = int(px[p])

@@ -26,9 +26,10 @@ RenderMode = Literal["RGB", "RGB+ED"]
 
 
 def set_num_threads(threads: int) -> None:
-    """Size numba's and torch's thread pools together. They are separate OpenMP pools; left at their
-    defaults they oversubscribe the cores and small torch ops slow down 15-30x. Export
-    OMP_WAIT_POLICY=PASSIVE before starting Python to stop idle pool threads from spinning."""
+    """Size numba's and torch's thread pools together; left at their defaults they oversubscribe the cores
+    and small torch ops slow down 15-30x. numba's first, because starting its OpenMP pool resets torch's count
+    to all cores (tests/test_stage_threads.py). Export OMP_WAIT_POLICY=PASSIVE before starting Python to stop
+    idle pool threads from spinning."""
     if threads < 1:
         raise BadInputError(f"set_num_threads: threads must be >= 1, got {threads}")
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
