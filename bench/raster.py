@@ -146,14 +146,14 @@ def breakdown(scene: dict, params: list[torch.Tensor], step_times: tuple[float, 
     m2, conics, depths, radii, colors = _project_kernels.project_fwd(*gauss, coeffs, deg, *cams, w, h, 0.01, 1e10)
     m2, conics, depths, radii, colors = m2[0], conics[0], depths[0], radii[0], colors[0]
     bins = _kernels.bin_gaussians(m2, conics, op, radii, depths, w, h)
-    img, t_final, n_proc, taken = _kernels.rasterize_fwd(m2, conics, colors, op, bins[0], bins[1], bins[4], w, h,
+    img, t_final, n_proc, taken = _kernels.rasterize_fwd(m2, conics, colors, op, bins[0], bins[1], bins[2], w, h,
                                                          True)
     g_img, g_alpha, bg = upstream(img.shape), np.zeros((h, w), np.float32), np.zeros(3, np.float32)
 
     def backward() -> None:
         slots = _kernels.rasterize_bwd(m2, conics, colors, op, bg, bins[0], bins[1], taken, w, h, img, t_final,
                                        n_proc, g_img, g_alpha, True)
-        _kernels.reduce_per_gaussian(slots, bins[2], bins[3])
+        _kernels.reduce_per_gaussian(slots, bins[1], m2.shape[0])
 
     for p in params:
         p.grad = torch.zeros_like(p)
@@ -169,7 +169,7 @@ def breakdown(scene: dict, params: list[torch.Tensor], step_times: tuple[float, 
         "projection": _timed(lambda: project(-1, no_sh), repeats),
         "projection_sh": _timed(lambda: project(deg, coeffs), repeats),
         "binning_and_sort": _timed(lambda: _kernels.bin_gaussians(m2, conics, op, radii, depths, w, h), repeats),
-        "raster_forward": _timed(lambda: _kernels.rasterize_fwd(m2, conics, colors, op, bins[0], bins[1], bins[4], w,
+        "raster_forward": _timed(lambda: _kernels.rasterize_fwd(m2, conics, colors, op, bins[0], bins[1], bins[2], w,
                                                                 h, True), repeats),
         "raster_backward": _timed(backward, repeats),
         "optimizer": _timed(adam, repeats),

@@ -25,7 +25,9 @@ STAGE_LIKE = textwrap.dedent("""
         from station.ngs import _kernels
 
         limit_threads(1)
-        _kernels.reduce_per_gaussian(np.ones((4, 3), np.float32), np.array([0, 2, 4]), np.arange(4))
+        one = np.ones(1, np.float32)
+        _kernels.bin_gaussians(np.full((1, 2), 4.0, np.float32), np.array([[1.0, 0.0, 1.0]], np.float32), one,
+                               np.ones(1, np.int32), one, 8, 8)
         result.send((torch.get_num_threads(), numba.get_num_threads()))
 
 

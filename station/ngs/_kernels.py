@@ -58,44 +58,9 @@ def _tile_rect(u, v, r, tw, th):
 
 
 @njit(cache=True)
-def _quad(a, b, c, dx, dy):
-    return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-
-
-@njit(cache=True)
-def _slopes(a, b, c):
-    """b / a and b / c of a conic, once a Gaussian for `_tile_hit`; zero where it never divides (a or c <= 0)."""
-    if a <= 0.0 or c <= 0.0:
-        return b * ZERO, b * ZERO
-    return b / a, b / c
-
-
-@njit(cache=True)
-def _tile_hit(u, v, a, b, c, b_a, b_c, sig_max, tx, ty):
-    """Whether some pixel centre of tile (tx, ty) can see the Gaussian at alpha >= 1/255: the minimum of its
-    quadratic form over the tile's pixel-centre rectangle is <= sig_max. Exact culling (never drops a pixel
-    that would composite it), about 2-3x fewer intersections than the 3-sigma rectangle alone. Callers first
-    shrink the rectangle to the ellipse's bounding box (`_hit_rect`), where the tiles that fail are few."""
-    dxl = u - (tx * TILE + TILE - 0.5)
-    dxh = u - (tx * TILE + 0.5)
-    dyl = v - (ty * TILE + TILE - 0.5)
-    dyh = v - (ty * TILE + 0.5)
-    if (dxl <= 0.0 <= dxh and dyl <= 0.0 <= dyh) or a <= 0.0 or c <= 0.0:
-        return True
-    best = math.inf
-    for dx in (dxl, dxh):
-        dy = min(max(-b_c * dx, dyl), dyh)
-        best = min(best, _quad(a, b, c, dx, dy))
-    for dy in (dyl, dyh):
-        dx = min(max(-b_a * dy, dxl), dxh)
-        best = min(best, _quad(a, b, c, dx, dy))
-    return best <= sig_max
-
-
-@njit(cache=True)
 def _hit_rect(u, v, r, a, b, c, sig_max, tw, th):
     """gsplat's tile rectangle of radius r, cut to the bounding box of the ellipse sigma <= sig_max (padded):
-    tiles outside it fail `_tile_hit` anyway, so the hits, and their order, are the same."""
+    tiles outside it have no hits in `_row_hits` anyway, and fewer rows are tested."""
     x0, y0, x1, y1 = _tile_rect(u, v, r, tw, th)
     det = a * c - b * b
     if a <= 0.0 or c <= 0.0 or det <= 0.0:
@@ -165,6 +130,8 @@ def _pixels(s, r0, r1):
 
 U8, RADIX_MASK = np.uint64(8), np.uint64(255)
 I32_MAX = np.int32(2**31 - 1)
+SORT_CHUNKS = 16  # parallel chunks of binning's counting sort
+KEPT_ROWS = 4  # tile rows of a Gaussian whose hits binning keeps from its first pass; it recomputes any others
 
 
 @njit(cache=True)
@@ -219,19 +186,56 @@ def depth_order(depths):
     return order
 
 
+@njit(cache=True)
+def _ellipse_rows(a, b, c, sig_max):
+    """What `_row_hits` needs of the ellipse sigma <= sig_max, once a Gaussian: 1/a, det, 2 a sig_max, its reach in
+    dy, and the dy at which it is widest (towards +dx at -turn, -dx at +turn). det <= 0: not positive definite."""
+    det = a * c - b * b
+    if a <= 0.0 or c <= 0.0 or det <= 0.0:
+        return 0.0, -1.0, 0.0, 0.0, 0.0
+    return 1.0 / a, det, 2.0 * a * sig_max, math.sqrt(2.0 * sig_max * a / det), b * math.sqrt(2.0 * sig_max / (c * det))
+
+
+@njit(cache=True)
+def _row_hits(u, v, b, ellipse, ty, x0, x1):
+    """Tiles [tx0, tx1) of [x0, x1) in tile row ty whose pixel-centre rectangle meets the ellipse sigma <= sig_max:
+    exact culling (never drops a pixel that would composite the Gaussian at alpha >= 1/255), about 2-3x fewer
+    intersections than gsplat's 3-sigma rectangle. The ellipse's slice through the row's band of pixel centres is
+    convex, so its x-extent is one interval: two square roots a row, not a test a tile. All of [x0, x1) for a conic
+    that is not positive definite."""
+    inv_a, det, two_as, reach_y, turn = ellipse
+    if det <= 0.0:
+        return x0, x1
+    lo = max(v - (ty * TILE + TILE - 0.5), -reach_y)  # the band's dy = v - y, cut to the ellipse's
+    hi = min(v - (ty * TILE + 0.5), reach_y)
+    if lo > hi:
+        return x0, x0
+    y_right = min(max(-turn, lo), hi)
+    y_left = min(max(turn, lo), hi)
+    dx_max = (-b * y_right + math.sqrt(max(two_as - det * y_right * y_right, 0.0))) * inv_a
+    dx_min = (-b * y_left - math.sqrt(max(two_as - det * y_left * y_left, 0.0))) * inv_a
+    if not (abs(dx_max) < math.inf and abs(dx_min) < math.inf):
+        return x0, x1
+    # pixel centres x = u - dx in [u - dx_max, u - dx_min]; clamped before the int conversion, which overflows
+    tx0 = int(math.ceil(min(max((u - dx_max - (TILE - 0.5)) * (1.0 / TILE), float(x0)), float(x1))))
+    tx1 = int(math.floor(min(max((u - dx_min - 0.5) * (1.0 / TILE), x0 - 1.0), x1 - 1.0))) + 1
+    return tx0, max(tx1, tx0)
+
+
 @njit(parallel=PRANGE_ONLY, cache=True)
 def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
-    """Per-tile depth-sorted intersection lists -> tile_offsets [T+1], isect_gid [M], gauss_offsets [N+1],
-    gauss_slots [M] (for Gaussian g, the list positions of its intersections, tile-major order), extents [N, 2]
-    (x and y half-widths, see `_extent`)."""
+    """Per-tile depth-sorted intersection lists -> tile_offsets [T+1], isect_gid [M], extents [N, 2] (x and y
+    half-widths, see `_extent`). Intersections are made in depth order, so sorting them by tile is a stable counting
+    sort over sequential reads, in parallel chunks."""
     n = means2d.shape[0]
     tw = (width + TILE - 1) // TILE
     th = (height + TILE - 1) // TILE
+    ntiles = tw * th
     counts = np.zeros(n, np.int64)
     extents = np.empty((n, 2), np.float64)
     sig = np.empty(n, np.float64)
-    hits = np.zeros(n, np.uint64)  # the first pass's hits as bits of the rectangle (row-major) when it has <= 64 tiles
-    rects = np.zeros((n, 4), np.int64)  # and the rectangle, x0 y0 x1 y1
+    rects = np.zeros((n, 4), np.int64)  # tile rectangle x0 y0 x1 y1 of the rows to test
+    spans = np.empty((n, KEPT_ROWS, 2), np.int64)  # the hits [tx0, tx1) of its first rows, for the second pass
     for g in prange(n):
         sig_max = _sig_max(opacities[g])
         sig[g] = sig_max
@@ -239,57 +243,69 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
         extents[g, 0] = _extent(ca, cc, ca * cc - cb * cb, sig_max)
         extents[g, 1] = _extent(cc, ca, ca * cc - cb * cb, sig_max)
         if radii[g] > 0 and sig_max >= 0.0:
-            u, v = means2d[g, 0], means2d[g, 1]
-            x0, y0, x1, y1 = _hit_rect(u, v, float(radii[g]), float(conics[g, 0]), float(conics[g, 1]),
-                                       float(conics[g, 2]), sig[g], tw, th)
+            u, v = float(means2d[g, 0]), float(means2d[g, 1])
+            x0, y0, x1, y1 = _hit_rect(u, v, float(radii[g]), ca, cb, cc, sig_max, tw, th)
             rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3] = x0, y0, x1, y1
-            small = (x1 - x0) * (y1 - y0) <= 64
-            b_a, b_c = _slopes(conics[g, 0], conics[g, 1], conics[g, 2])
-            bit = np.uint64(0)
-            mask = np.uint64(0)
-            for ty in range(y0, y1):
-                for tx in range(x0, x1):
-                    if _tile_hit(u, v, conics[g, 0], conics[g, 1], conics[g, 2], b_a, b_c, sig_max, tx, ty):
-                        counts[g] += 1
-                        if small:
-                            mask |= np.uint64(1) << bit
-                    bit += np.uint64(1)
-            hits[g] = mask
-    gauss_offsets = np.zeros(n + 1, np.int64)
-    gauss_offsets[1:] = np.cumsum(counts)
-    m = gauss_offsets[n]
+            ellipse = _ellipse_rows(ca, cb, cc, sig_max)
+            hit = 0
+            for r in range(y1 - y0):
+                a0, a1 = _row_hits(u, v, cb, ellipse, y0 + r, x0, x1)
+                if r < KEPT_ROWS:
+                    spans[g, r, 0], spans[g, r, 1] = a0, a1
+                hit += a1 - a0
+            counts[g] = hit
     order = depth_order(depths)
-    tile_counts = np.zeros(tw * th + 1, np.int64)
-    isect_tile = np.empty(m, np.int64)
+    order_offsets = np.zeros(n + 1, np.int64)
+    first = np.empty(n, np.int64)  # per Gaussian, where its intersections start: filled in index order, whose reads
+    for i in range(n):             # are sequential, where depth order's miss the cache at 100k Gaussians
+        first[order[i]] = order_offsets[i]
+        order_offsets[i + 1] = order_offsets[i] + counts[order[i]]
+    m = order_offsets[n]
+    isect_tile = np.empty(m, np.int32)
     for g in prange(n):
         if counts[g] > 0:
-            u, v = means2d[g, 0], means2d[g, 1]
             x0, y0, x1, y1 = rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3]
-            small = (x1 - x0) * (y1 - y0) <= 64
-            b_a, b_c = _slopes(conics[g, 0], conics[g, 1], conics[g, 2])
-            j = gauss_offsets[g]
-            bit = np.uint64(0)
-            for ty in range(y0, y1):
-                for tx in range(x0, x1):
-                    if ((hits[g] >> bit) & np.uint64(1)) != np.uint64(0) if small else _tile_hit(
-                            u, v, conics[g, 0], conics[g, 1], conics[g, 2], b_a, b_c, sig[g], tx, ty):
-                        isect_tile[j] = ty * tw + tx
-                        j += 1
-                    bit += np.uint64(1)
-    for j in range(m):
-        tile_counts[isect_tile[j] + 1] += 1
-    tile_offsets = np.cumsum(tile_counts)
-    cursor = tile_offsets[:-1].copy()
-    isect_gid = np.empty(m, np.int32)
-    gauss_slots = np.empty(m, np.int64)
+            j = first[g]
+            for r in range(y1 - y0):
+                if r < KEPT_ROWS:
+                    a0, a1 = spans[g, r, 0], spans[g, r, 1]
+                else:
+                    ellipse = _ellipse_rows(float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), sig[g])
+                    a0, a1 = _row_hits(float(means2d[g, 0]), float(means2d[g, 1]), float(conics[g, 1]), ellipse,
+                                       y0 + r, x0, x1)
+                for tx in range(a0, a1):
+                    isect_tile[j] = (y0 + r) * tw + tx
+                    j += 1
+    chunks = max(1, min(SORT_CHUNKS, m // 32768))  # fixed, not the thread count: numba can't cache that call
+    bounds = np.full(chunks + 1, n, np.int64)  # Gaussians [bounds[c], bounds[c + 1]): ~m / chunks intersections
+    bounds[0] = 0
+    ch = 1
     for i in range(n):
-        g = order[i]
-        for j in range(gauss_offsets[g], gauss_offsets[g + 1]):
-            t = isect_tile[j]
-            isect_gid[cursor[t]] = g
-            gauss_slots[j] = cursor[t]
-            cursor[t] += 1
-    return tile_offsets, isect_gid, gauss_offsets, gauss_slots, extents
+        while ch < chunks and order_offsets[i] >= (ch * m) // chunks:
+            bounds[ch] = i
+            ch += 1
+    hist = np.zeros((chunks, ntiles), np.int64)
+    for ch in prange(chunks):
+        for j in range(order_offsets[bounds[ch]], order_offsets[bounds[ch + 1]]):
+            hist[ch, isect_tile[j]] += 1
+    tile_offsets = np.empty(ntiles + 1, np.int64)
+    cursor = np.empty((chunks, ntiles), np.int64)
+    run = 0
+    for t in range(ntiles):
+        tile_offsets[t] = run
+        for ch in range(chunks):
+            cursor[ch, t] = run
+            run += hist[ch, t]
+    tile_offsets[ntiles] = run
+    isect_gid = np.empty(m, np.int32)
+    for ch in prange(chunks):
+        for i in range(bounds[ch], bounds[ch + 1]):
+            g = order[i]
+            for j in range(order_offsets[i], order_offsets[i + 1]):
+                t = isect_tile[j]
+                isect_gid[cursor[ch, t]] = g
+                cursor[ch, t] += 1
+    return tile_offsets, isect_gid, extents
 
 
 @intrinsic
@@ -642,17 +658,17 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
     return slots
 
 
-@njit(parallel=PRANGE_ONLY, cache=True)
-def reduce_per_gaussian(slot_grads, gauss_offsets, gauss_slots):
-    """Sum per-intersection gradient rows [M, K] into per-Gaussian rows [N, K], each Gaussian in a fixed order."""
-    n = gauss_offsets.shape[0] - 1
+@njit(cache=True)
+def reduce_per_gaussian(slot_grads, isect_gid, n):
+    """Sum per-intersection gradient rows [M, K] into per-Gaussian rows [N, K], each Gaussian in tile order:
+    deterministic. One sequential pass adding into rows that stay in cache: twice as fast at 100k Gaussians as a
+    parallel loop per Gaussian, whose rows are random reads."""
     kk = slot_grads.shape[1]
     out = np.zeros((n, kk), slot_grads.dtype)
-    for g in prange(n):
-        for j in range(gauss_offsets[g], gauss_offsets[g + 1]):
-            s = gauss_slots[j]
-            for q in range(kk):
-                out[g, q] += slot_grads[s, q]
+    for j in range(slot_grads.shape[0]):
+        g = isect_gid[j]
+        for q in range(kk):
+            out[g, q] += slot_grads[j, q]
     return out
 
 

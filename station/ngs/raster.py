@@ -238,7 +238,7 @@ class _Rasterize(torch.autograd.Function):
         fast = means2d.dtype == torch.float32
         bins = _kernels.bin_gaussians(arrays[0], arrays[1], arrays[3], radii.numpy(), depths.detach().numpy(), width,
                                       height)
-        img, t_final, n_proc, taken = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], bins[4], width, height, fast)
+        img, t_final, n_proc, taken = _kernels.rasterize_fwd(*arrays, bins[0], bins[1], bins[2], width, height, fast)
         bg = background.detach().numpy()
         ctx.state = (arrays, bg, bins, img, t_final, n_proc, taken, width, height, fast)
         img_t = torch.from_numpy(img)
@@ -252,7 +252,7 @@ class _Rasterize(torch.autograd.Function):
         arrays, bg, bins, img, t_final, n_proc, taken, width, height, fast = ctx.state
         slots = _kernels.rasterize_bwd(*arrays, bg, bins[0], bins[1], taken, width, height, img, t_final, n_proc,
                                        g_img.contiguous().numpy(), g_alpha[..., 0].contiguous().numpy(), fast)
-        red = torch.from_numpy(_kernels.reduce_per_gaussian(slots, bins[2], bins[3]))       # [N, 6 + D]
+        red = torch.from_numpy(_kernels.reduce_per_gaussian(slots, bins[1], arrays[0].shape[0]))  # [N, 6 + D]
         d = slots.shape[1] - 6
         g_bg = (g_img * torch.from_numpy(t_final)[..., None]).sum((0, 1)) if ctx.needs_input_grad[6] else None
         # radii, depths (order only), width, height get no gradient
@@ -332,7 +332,7 @@ def median_depth(
         bins = _kernels.bin_gaussians(m2, conics, opac, radii, depths, width, height)
         level = _host(alpha_level) if isinstance(alpha_level, Tensor) else alpha_level
         levels = np.broadcast_to(np.asarray(level, m2.dtype), (height, width))
-        out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], bins[4], width, height,
+        out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], bins[2], width, height,
                                         np.ascontiguousarray(levels), means.dtype == torch.float32)
         return torch.from_numpy(out).to(means.device)
 
