@@ -350,12 +350,16 @@ def _project_bwd_chunk(start, means, quats, scales, coeffs, sh_degree, viewmats,
     """The backward of Gaussians start .. start + CHUNK - 1 (fewer at the end) over every camera; arguments as
     `_project_one_bwd`'s, Rws [C, 3, 3] the cameras' rotations and Rw [3, 3] scratch."""
     g_means2d, g_conics, g_depths, g_colors = upstream
-    g_cov = outs[2]
+    g_means, g_coeffs, g_cov = outs[0], outs[1], outs[2]
     s0, s1, gR = scratch[0], scratch[1], scratch[6]
     for g in range(start, min(means.shape[0], start + CHUNK)):
         for i in range(3):
+            g_means[g, i] = 0.0
             for j in range(3):
                 g_cov[i, j] = 0.0
+        for k in range(g_coeffs.shape[1]):
+            for i in range(3):
+                g_coeffs[g, k, i] = 0.0
         seen = False
         for c in range(viewmats.shape[0]):
             if radii[c, g] > 0 and _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
@@ -367,6 +371,11 @@ def _project_bwd_chunk(start, means, quats, scales, coeffs, sh_degree, viewmats,
                                  height, colors, upstream, outs, Rw, scratch, want_pose)
         if seen:
             _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, s0, s1, gR)
+        else:
+            for i in range(4):
+                g_quats[g, i] = 0.0
+            for i in range(3):
+                g_scales[g, i] = 0.0
 
 
 @njit(parallel=PRANGE_ONLY, cache=True, error_model="numpy", fastmath=True)
@@ -376,10 +385,10 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     (the last two zero unless want_pose: training poses are constants, so their partials are skipped)."""
     c_n, n = viewmats.shape[0], means.shape[0]
     dt = means.dtype
-    g_means = np.zeros((n, 3), dt)
-    g_quats = np.zeros((n, 4), dt)
-    g_scales = np.zeros((n, 3), dt)
-    g_coeffs = np.zeros(coeffs.shape, dt)
+    g_means = np.empty((n, 3), dt)  # each Gaussian's rows are zeroed in its chunk: np.zeros is a serial memset
+    g_quats = np.empty((n, 4), dt)
+    g_scales = np.empty((n, 3), dt)
+    g_coeffs = np.empty(coeffs.shape, dt)
     pose_part = np.zeros((c_n, n if want_pose else 0, 15))  # per (camera, Gaussian): d Rw (9), d t (3), d campos (3)
     Rws = np.empty((c_n, 3, 3))
     # loops here and below, not Rws[c] = viewmats[c, :3, :3] and pose_part.sum(axis=1): those compile error paths
