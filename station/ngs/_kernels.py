@@ -40,10 +40,13 @@ ALPHA_MIN = F(conventions.ALPHA_MIN)
 T_STOP = F(conventions.T_STOP)
 LOG2E = F(1.4426950408889634)
 LN2 = F(0.6931471805599453)
-SQRT2 = F(1.4142135623730951)
 EXP_FLOOR = F(-30.0)
 BIG = 1e30
-POLY = (F(1.0), F(1.0), F(0.5), F(1.0 / 6), F(1.0 / 24), F(1.0 / 120), F(1.0 / 720), F(1.0 / 5040))
+# sqrt(2) exp(f) on |f| <= ln(2) / 2, degree 6: a relative-error fit (reweighted least squares on Chebyshev nodes),
+# max error 1.4e-7 and mean -2e-8 in float32 Horner, as the degree-7 Taylor series times sqrt(2) it replaced with
+# two operations a pixel fewer
+POLY = tuple(F(c) for c in (1.4142135381698608, 1.4142136573791504, 0.7071066498756409, 0.23569877445697784,
+                            0.05892777070403099, 0.011843778192996979, 0.001956826774403453))
 RGB = 3  # feature channels the compositing loops carry themselves; any others get a loop each
 
 
@@ -331,10 +334,9 @@ def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, p0, p1):
             y = max(min(-sig, ZERO), EXP_FLOOR) * LOG2E
             kf = np.floor(y)
             f = (y - kf - HALF) * LN2
-            poly = POLY[0] + f * (POLY[1] + f * (POLY[2] + f * (POLY[3] + f * (POLY[4] + f * (POLY[5] + f * (
-                POLY[6] + f * POLY[7]))))))
+            poly = POLY[0] + f * (POLY[1] + f * (POLY[2] + f * (POLY[3] + f * (POLY[4] + f * (POLY[5] + f * POLY[6])))))
             two_k = _float32_from_bits(np.int32((np.int32(kf) + np.int32(127)) << np.int32(23)))
-            expo[p] = poly * SQRT2 * two_k if sig >= ZERO else ZERO
+            expo[p] = poly * two_k if sig >= ZERO else ZERO
             alpha[p] = min(ALPHA_MAX, op * expo[p])
     else:
         for p in range(p0, p1):
