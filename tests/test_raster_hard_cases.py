@@ -129,6 +129,24 @@ def test_nan_or_inf_in_any_input_is_a_bad_input_error_naming_it(name, bad):
                       inputs["viewmats"], inputs["Ks"], 8, 8, backgrounds=inputs["backgrounds"])
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_nan_or_inf_anywhere_in_a_million_sh_coefficients_is_found(dtype):
+    """Large inputs are checked in parallel chunks: a bad value in the first, a middle or the last one is found,
+    and huge but finite values pass."""
+    n = 70_000                                                              # 70k x 16 x 3: past the serial limit
+    means, quats, scales, opacities, _ = gaussians(np.zeros((n, 3)) + [0, 0, 2.0], [0.01, 0.01, 0.01], [0.5])
+    viewmats, Ks = camera(8, 8)
+    sh = torch.full((n, 16, 3), torch.finfo(dtype).max, dtype=dtype)
+    args = [means.to(dtype), quats.to(dtype), scales.to(dtype), opacities.to(dtype)]
+    rasterization(*args, sh, viewmats.to(dtype), Ks.to(dtype), 8, 8, sh_degree=3)
+    for at in (0, sh.numel() // 2 + 5, sh.numel() - 1):
+        for bad in (float("nan"), float("inf"), -float("inf")):
+            spoilt = sh.clone()
+            spoilt.view(-1)[at] = bad
+            with pytest.raises(BadInputError, match="colors contains NaN or inf"):
+                rasterization(*args, spoilt, viewmats.to(dtype), Ks.to(dtype), 8, 8, sh_degree=3)
+
+
 def test_log_scales_and_opacities_out_of_range_are_refused():
     means, quats, scales, opacities, colors = gaussians([[0, 0, 2.0]], [0.1, 0.1, 0.1], [0.5])
     viewmats, Ks = camera(8, 8)

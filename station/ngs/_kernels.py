@@ -680,6 +680,30 @@ def reduce_per_gaussian(slot_grads, isect_gid, n):
     return out
 
 
+@njit(cache=True)
+def _top_exponent(bits, exponent, lo, hi):
+    """Largest `bits & exponent` over bits[lo:hi]; unsigned indices, which let LLVM vectorise the max (see `_pixels`)."""
+    top = exponent - exponent
+    for i in range(np.uint64(lo), np.uint64(hi)):
+        top = max(top, bits[i] & exponent)
+    return top
+
+
+@njit(parallel=PRANGE_ONLY, cache=True)
+def all_finite(bits, exponent):
+    """Whether no value of a float array, viewed as unsigned ints `bits`, has the all-ones `exponent` of inf and
+    NaN. A max over the exponent bits vectorises and allocates nothing; np.isfinite builds an [N] bool array.
+    Arrays under a million values take one thread: waking the pool costs more."""
+    n = bits.shape[0]
+    if n < 1 << 20:
+        return _top_exponent(bits, exponent, 0, n) < exponent
+    chunks = 16
+    worst = np.zeros(chunks, bits.dtype)
+    for ch in prange(chunks):
+        worst[ch] = _top_exponent(bits, exponent, ch * n // chunks, (ch + 1) * n // chunks)
+    return worst.max() < exponent
+
+
 @njit(parallel=PRANGE_ONLY, fastmath=True, cache=True)
 def seen_in_front(means2d, conics, opacities, radii, depths, width, height, limit):
     """Per Gaussian, whether some pixel sees it (alpha >= 1/255 inside its tiles: compositing's skip rule) at a

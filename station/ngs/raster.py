@@ -41,12 +41,23 @@ def _host(x: Tensor) -> np.ndarray:
     return x.detach().cpu().numpy()
 
 
+EXPONENT_BITS = {np.dtype(np.float32): (np.uint32, np.uint32(0x7F800000)),
+                 np.dtype(np.float64): (np.uint64, np.uint64(0x7FF0000000000000))}
+
+
+def _all_finite(a: np.ndarray) -> bool:
+    if a.dtype not in EXPONENT_BITS:
+        return bool(np.isfinite(a).all())
+    bits, exponent = EXPONENT_BITS[a.dtype]
+    return bool(_kernels.all_finite(np.ascontiguousarray(a).reshape(-1).view(bits), exponent))
+
+
 def _check_finite(name: str, x: Tensor) -> None:
     if not torch.is_tensor(x):
         raise BadInputError(f"rasterization: {name} must be a torch.Tensor, got {type(x).__name__}")
     if not x.is_floating_point():
         raise BadInputError(f"rasterization: {name} must be a floating-point tensor, got {x.dtype}")
-    if not np.isfinite(_host(x)).all():
+    if not _all_finite(_host(x)):
         raise BadInputError(f"rasterization: {name} contains NaN or inf")
 
 
