@@ -234,17 +234,18 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     tw = (width + TILE - 1) // TILE
     th = (height + TILE - 1) // TILE
     ntiles = tw * th
-    counts = np.zeros(n, np.int64)
+    counts = np.empty(n, np.int64)
     extents = np.empty((n, 2), np.float64)
     sig = np.empty(n, np.float64)
-    rects = np.zeros((n, 4), np.int64)  # tile rectangle x0 y0 x1 y1 of the rows to test
-    spans = np.empty((n, KEPT_ROWS, 2), np.int64)  # the hits [tx0, tx1) of its first rows, for the second pass
+    rects = np.empty((n, 4), np.int32)  # tile rectangle x0 y0 x1 y1 of the rows to test (where counts > 0)
+    spans = np.empty((n, KEPT_ROWS, 2), np.int32)  # the hits [tx0, tx1) of its first rows, for the second pass
     for g in prange(n):
         sig_max = _sig_max(opacities[g])
         sig[g] = sig_max
         ca, cb, cc = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
         extents[g, 0] = _extent(ca, cc, ca * cc - cb * cb, sig_max)
         extents[g, 1] = _extent(cc, ca, ca * cc - cb * cb, sig_max)
+        counts[g] = 0
         if radii[g] > 0 and sig_max >= 0.0:
             u, v = float(means2d[g, 0]), float(means2d[g, 1])
             x0, y0, x1, y1 = _hit_rect(u, v, float(radii[g]), ca, cb, cc, sig_max, tw, th)
