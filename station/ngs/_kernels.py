@@ -134,6 +134,7 @@ def _pixels(s, r0, r1):
 U8, RADIX_MASK = np.uint64(8), np.uint64(255)
 I32_MAX = np.int32(2**31 - 1)
 SORT_CHUNKS = 16  # parallel chunks of binning's counting sort
+NOT_POSITIVE = (0.0, -1.0, 0.0, 0.0, 0.0)  # `_ellipse_rows` of a conic that is not positive definite
 KEPT_ROWS = 4  # tile rows of a Gaussian whose hits binning keeps from its first pass; it recomputes any others
 
 
@@ -195,7 +196,7 @@ def _ellipse_rows(a, b, c, sig_max):
     dy, and the dy at which it is widest (towards +dx at -turn, -dx at +turn). det <= 0: not positive definite."""
     det = a * c - b * b
     if a <= 0.0 or c <= 0.0 or det <= 0.0:
-        return 0.0, -1.0, 0.0, 0.0, 0.0
+        return NOT_POSITIVE
     return 1.0 / a, det, 2.0 * a * sig_max, math.sqrt(2.0 * sig_max * a / det), b * math.sqrt(2.0 * sig_max / (c * det))
 
 
@@ -260,8 +261,10 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
             counts[g] = hit
     order = depth_order(depths)
     order_offsets = np.zeros(n + 1, np.int64)
-    first = np.empty(n, np.int64)  # per Gaussian, where its intersections start: filled in index order, whose reads
-    for i in range(n):             # are sequential, where depth order's miss the cache at 100k Gaussians
+    # where each Gaussian's intersections start, so the next pass can run in index order: its reads are sequential,
+    # where depth order's miss the cache at 100k Gaussians
+    first = np.empty(n, np.int64)
+    for i in range(n):
         first[order[i]] = order_offsets[i]
         order_offsets[i + 1] = order_offsets[i] + counts[order[i]]
     m = order_offsets[n]
@@ -269,14 +272,14 @@ def bin_gaussians(means2d, conics, opacities, radii, depths, width, height):
     for g in prange(n):
         if counts[g] > 0:
             x0, y0, x1, y1 = rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3]
+            ca, cb, cc = float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2])
+            ellipse = _ellipse_rows(ca, cb, cc, sig[g]) if y1 - y0 > KEPT_ROWS else NOT_POSITIVE
             j = first[g]
             for r in range(y1 - y0):
                 if r < KEPT_ROWS:
                     a0, a1 = spans[g, r, 0], spans[g, r, 1]
                 else:
-                    ellipse = _ellipse_rows(float(conics[g, 0]), float(conics[g, 1]), float(conics[g, 2]), sig[g])
-                    a0, a1 = _row_hits(float(means2d[g, 0]), float(means2d[g, 1]), float(conics[g, 1]), ellipse,
-                                       y0 + r, x0, x1)
+                    a0, a1 = _row_hits(float(means2d[g, 0]), float(means2d[g, 1]), cb, ellipse, y0 + r, x0, x1)
                 for tx in range(a0, a1):
                     isect_tile[j] = (y0 + r) * tw + tx
                     j += 1
