@@ -339,6 +339,12 @@ def test_the_extension_decision_reads_the_last_two_evaluations():
     assert extension_decision(ExtendConfig(), evals, 0, 500)["reason"] == "extension off"
 
 
+def test_an_sos_just_below_its_target_reads_as_below_it_in_the_reason():
+    cfg = ExtendConfig(max_extra_steps=1_000)
+    evals = [{"step": 4000, "psnr": 31.39, "sos": 0.9271}, {"step": 4500, "psnr": 31.26, "sos": 0.94986}]
+    assert extension_decision(cfg, evals, 0, 500)["reason"] == "SOS 0.9499 below 0.95 and still rising"
+
+
 def test_the_early_finish_needs_the_ngs_phases_over_and_every_held_out_figure_past_its_mark():
     cfg = ExtendConfig(finish_sos=0.95, psnr_target_db=40.0)
     # the demo scan at step 2,000: SOS still rises towards 1, but the worst view leaks 1e-4 px of infill
