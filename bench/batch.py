@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import secrets
 import shutil
 import statistics
@@ -42,6 +41,7 @@ from station.batch.stages import STAGE_NAMES
 from station.batch.store import JobStore
 from station.cli_scan import run_sim_scan
 from station.scanfolder import atomic_write_json
+from machine import describe
 
 SIZE = (160, 120)
 
@@ -186,7 +186,7 @@ def bench_nodes(counts: list[int], scans: int, preset: str, night_scans: int = 4
     times = default_scan_stage_times()
     result = {
         "benchmark": "batch_ray_nodes",
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0],
+        "machine": {**describe(),
                     "load_avg_1min": {"start": round(load_at_start, 2), "end": round(os.getloadavg()[0], 2)},
                     "note": f"every node runs on this one {os.cpu_count()}-core machine, shared with other work: "
                             "more nodes than cores cannot add throughput here"},
@@ -238,7 +238,7 @@ def main() -> None:
     default, peer, two = rows
     result = {
         "benchmark": "batch",
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0],
+        "machine": {**describe(),
                     "load_avg_1min": {"start": round(load_at_start, 2), "end": round(os.getloadavg()[0], 2)}},
         "threads": {f"{w} worker(s) x {t} thread(s)": t for w, t in configs},
         "scan": {"elevations": 2, "azimuths": 8, "size": list(SIZE), "preset": args.preset},

@@ -18,8 +18,6 @@ Prints a table and writes bench/results/masks_across_rings.json.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -30,6 +28,7 @@ from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from machine import describe  # noqa: E402
 from masks import score, stone_specs  # noqa: E402  (bench/masks.py)
 from sim.rig import make_stone  # noqa: E402
 from sim.truth import mask_path_for, true_masks_at  # noqa: E402
@@ -117,7 +116,7 @@ def main() -> None:
             cells.append(f"{ring['first_cut']['iou_mean']:.4f} -> {ring['across_rings']['iou_mean']:.4f} ({recut})")
         table.add_row(record["stone"], *cells, f"{record['seconds']['across_rings']:.0f}")
     Console(width=200).print(table)
-    atomic_write_json(args.out, {"machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+    atomic_write_json(args.out, {"machine": describe(),
                                  "sensor": list(sensor), "training_width": args.training_width,
                                  "azimuths": args.azimuths, "stones": records})
     print(f"wrote {args.out}")

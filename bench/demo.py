@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import subprocess
 import sys
@@ -25,6 +24,7 @@ from rich.console import Console
 from rich.table import Table
 
 from revisions import unpack, working_tree
+from machine import describe
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGE_LINE = re.compile(r"^(scan|process|train|export): (\d+) s(?: \((.*)\))?$")
@@ -102,8 +102,7 @@ def main() -> None:
         runs["after"] = run_demo(ROOT, Path(tmp) / "after", cache) | {"revision": revision, "numba_cache": "empty"}
         runs["after, warm"] = run_demo(ROOT, Path(tmp) / "after-warm", cache) | {
             "revision": revision, "numba_cache": "kept from the run before"}
-    result = {"benchmark": "demo", "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
-                                               "python": sys.version.split()[0]},
+    result = {"benchmark": "demo", "machine": describe(),
               "note": "before and after start with an empty numba cache, so both include their kernels' compile "
                       "time; 'after, warm' runs again with the cache the after run filled, as a second demo does",
               "runs": runs}

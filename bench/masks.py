@@ -23,8 +23,6 @@ Prints a table and writes bench/results/masks.json.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -37,6 +35,7 @@ from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from machine import describe  # noqa: E402
 from sim.dng import dng_bytes  # noqa: E402
 from sim.rig import make_stone  # noqa: E402
 from sim.scene import World, render  # noqa: E402
@@ -207,7 +206,7 @@ def main() -> None:
     ours = np.mean([r["seconds"] for r in rows if r["method"] == "ours"])
     peer = np.mean([r["seconds"] for r in rows if r["method"] == "grabcut"])
     record = {
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+        "machine": describe(),
         "size": list(size), "views_per_ring": AZIMUTHS // args.step,
         "seconds_per_mask": {"ours": round(float(ours), 4), "grabcut": round(float(peer), 4),
                              "ours_over_grabcut": round(float(ours / peer), 3)},

@@ -14,8 +14,6 @@ bench/results/mesh.json.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from dataclasses import replace
@@ -32,6 +30,7 @@ from station.ngs.dataset import load_scene
 from station.ngs.infill import Camera
 from station.ngs.sos import load_surface, scan_infill
 from station.scanfolder import ScanFolder, atomic_write_json
+from machine import describe
 
 RESULTS = Path(__file__).parent / "results" / "mesh.json"
 DEFAULT_SCAN = Path(__file__).resolve().parents[1] / "demo-out" / "scan"
@@ -73,7 +72,7 @@ def main() -> None:
     peer = rows["tsdf"]
     result = {
         "benchmark": "mesh",
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "machine": describe(),
         "scan": str(args.scan),
         "peer": "TSDF of median-depth maps (mesh.surface = 'tsdf'), same grid and infill, same run",
         "methods": rows,

@@ -23,7 +23,6 @@ import argparse
 import functools
 import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -47,6 +46,7 @@ from station.ngs.sos import evaluate, load_surface
 from station.ngs.trainer import TrainConfig, Trainer
 from station.ngs.warmup import start_kernel_warmup
 from station.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_json
+from machine import describe
 
 RESULTS = Path(__file__).parent / "results" / "ngs.json"
 
@@ -207,7 +207,7 @@ def main() -> None:
     best_psnr = max(rows[method]["psnr"] for method in ("3dgs", "alpha", "ngs"))  # the ablations are not peers
     result = {
         "benchmark": "ngs",
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()},
+        "machine": describe(),
         "threads": os.cpu_count(),
         "scan": str(args.scan or f"simulated {args.stone or 'default stone'} at {args.size}, 6x40"),
         "presets": args.presets.split(","),

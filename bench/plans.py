@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -28,6 +27,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
+from machine import describe
 from ngs import curve_svg, score, train_one
 from station.ngs.infill import Infill
 from station.ngs.presets import make_config
@@ -65,8 +65,7 @@ def main() -> None:
     peer = rows[f"{plans[-1]}-step plan"]
     result = {
         "benchmark": "plans",
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
-                    "load_average": list(os.getloadavg())},
+        "machine": {**describe(), "load_average": list(os.getloadavg())},
         "threads": torch.get_num_threads(),
         "scan": str(args.scan),
         "preset": "fast",

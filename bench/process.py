@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import sys
 import tempfile
@@ -45,6 +44,7 @@ from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from machine import describe  # noqa: E402
 from bench.masks import developed  # noqa: E402
 from sim.dng import dng_bytes  # noqa: E402
 from sim.fidelity import ring_summary, scan_fidelity  # noqa: E402
@@ -179,7 +179,7 @@ def fidelity_main(args: argparse.Namespace, console: Console) -> None:
                       f"{r['iou_mean']:.4f}", f"{r['develop_s_per_view']:.3f}", f"{r['matte_s_per_view']:.3f}")
     console.print(table)
     result = {"benchmark": "process_fidelity", "label": args.label,
-              "machine": {"cpus": os.cpu_count(), "load_average_before": load_before,
+              "machine": {**describe(), "load_average_before": load_before,
                           "load_average_after": os.getloadavg(),
                           "note": "shared machine: other jobs ran alongside, so times are inflated and noisy"},
               "scan": {"size": list(size), "training_width": args.training_width, "rings": args.rings,
@@ -336,9 +336,7 @@ def main() -> None:
     console.print(table)
     result = {
         "benchmark": "process",
-        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                    "cpus": os.cpu_count(), "python": sys.version.split()[0],
-                    "load_average_before": load_before, "load_average_after": os.getloadavg(),
+        "machine": {**describe(), "load_average_before": load_before, "load_average_after": os.getloadavg(),
                     "note": "shared machine: other jobs ran alongside, so absolute times are inflated"},
         "threads": {"colmap": THREADS, "libraw": 1},
         "versions": {"rawpy": rawpy.__version__, "libraw": ".".join(map(str, rawpy.libraw_version)),

@@ -22,7 +22,6 @@ import argparse  # noqa: E402
 import importlib  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
-import platform  # noqa: E402
 import resource  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
@@ -41,6 +40,7 @@ from station.ngs.conventions import rgb_to_sh  # noqa: E402
 from station.ngs.raster import _validate, rasterization, set_num_threads  # noqa: E402
 from station.ngs.raster_reference import camera_centres  # noqa: E402
 
+from machine import describe  # noqa: E402
 from revisions import unpack_as, working_tree  # noqa: E402
 
 REFERENCE_LIMIT = 2_000 * 128 * 128  # Gaussians x pixels beyond which the dense reference is skipped
@@ -296,7 +296,7 @@ def against(rev: str, rounds: int, out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"benchmark": "raster", "before": before, "after": working_tree(),
                                "rounds": rounds, "threads": 2, "method": "one process, trees in turns",
-                               "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()},
+                               "machine": describe(),
                                "configs": rows}, indent=2) + "\n")
     print(f"wrote {out}")
 
@@ -350,8 +350,7 @@ def main() -> None:
     peak = step_peak_rss_mb(100_000, 512, 512)
     print(f"peak memory of a process training at 100k / 512x512 (import included): {peak:.0f} MB")
     result = {
-        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                    "cpu_count": os.cpu_count(), "load_average": os.getloadavg()},
+        "machine": {**describe(), "load_average": os.getloadavg()},
         "threads": args.threads, "torch": torch.__version__, "numba": numba.__version__,
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),  # this whole bench
         "peak_rss_100k_512_mb": peak,

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import shutil
 import sys
 import tempfile
@@ -32,6 +31,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
+from machine import describe
 from ngs import curve_svg, score, train_one
 from station.ngs.conventions import ALPHA_MIN
 from station.ngs.infill import Infill
@@ -114,8 +114,7 @@ def run_dataset(name: str, dataset: RealDataset, methods: list[str], variants: l
     psnr_3dgs = rows["3dgs"]["psnr"] if "3dgs" in rows else None
     return {
         "benchmark": "real",
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
-                    "load_average": list(os.getloadavg())},
+        "machine": {**describe(), "load_average": list(os.getloadavg())},
         "threads": torch.get_num_threads(),
         "scan": f"{dataset.note}; trained at 1/{downscale} of the source size"
                 + ("" if budget is None else f", at most {budget:,} Gaussians"),

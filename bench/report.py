@@ -19,6 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
+from machine import summary  # noqa: E402
 from svgplot import Series, scatter_svg  # noqa: E402
 
 from station.errors import BadInputError  # noqa: E402
@@ -378,9 +379,7 @@ def load(path: Path) -> dict:
 
 
 def machine_line(data: dict) -> str:
-    machine = data.get("machine") or {}
-    cpus = machine.get("cpus") or machine.get("cpu_count")
-    return f"Machine: {machine.get('platform', 'not recorded')}, {cpus or '?'} CPUs."
+    return f"Machine: {summary(data.get('machine') or {})}."
 
 
 def render(results: Path, out: Path) -> tuple[str, dict[Path, str]]:

@@ -10,9 +10,6 @@ and how much of the capture overhead the pipelining hides.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,6 +24,7 @@ from station.rig_geometry import RigGeometry
 from station.scanfolder import ScanFolder, atomic_write_json
 from station.turntable.grbl import TurntableConfig
 from station.turntable.planning import trapezoid_seconds
+from machine import describe
 
 
 def motion_seconds(plan: ScanPlan, config: TurntableConfig) -> float:
@@ -82,7 +80,7 @@ def main() -> None:
     hidden = rows[1]["wall_s"] - rows[0]["wall_s"]
     result = {
         "benchmark": "scan",
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0]},
+        "machine": describe(),
         "threads": 1,
         "size": [width, height],
         "plan": plan.to_dict(),

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import os
-import platform
 import statistics
 import sys
 import time
@@ -27,6 +26,7 @@ from rich.table import Table
 
 from station.batch.executors import PRELOAD
 from station.scanfolder import atomic_write_json
+from machine import describe
 
 BENCH = Path(__file__).resolve().parent
 
@@ -101,7 +101,7 @@ def main() -> None:
         c["ratio_vs_peer"] = round(c["step_ms"] / peer["step_ms"], 3)
         c["mean_ratio_vs_peer"] = round(c["mean_step_ms"] / peer["mean_step_ms"], 3)
     data = {"benchmark": "thread_pools", "gaussians": args.gaussians, "size": [args.size, args.size],
-            "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count()}, "configs": configs}
+            "machine": describe(), "configs": configs}
     atomic_write_json(args.out, data)
     table = Table(title=f"step in a stage process, {args.gaussians} Gaussians, {args.size}²")
     for column in ("way", "threads", "layer", "torch threads", "median ms", "× peer", "mean ms", "× peer", "load"):
