@@ -7,39 +7,34 @@ import os
 import platform
 from pathlib import Path
 
-VECTOR_UNITS = ("avx512f", "avx2", "avx", "sse4_2", "asimd")  # widest first; asimd is aarch64's NEON
+VECTOR_UNITS = ("avx512f", "avx2", "avx", "sse4.2", "neon")  # widest first, as LLVM names them
 
 
 def describe() -> dict:
-    """Platform, CPU count and model, widest vector unit, Python version, and the 1-minute load now."""
-    cpu = _cpuinfo()
-    flags = set(cpu.get("flags", cpu.get("Features", "")).split())
-    model = cpu.get("model name") or platform.processor() or platform.machine()
-    if "cpu family" in cpu and "model" in cpu:
-        model = f"{model} (family {cpu['cpu family']}, model {cpu['model']})"
-    return {"platform": platform.platform(), "cpus": os.cpu_count(), "cpu_model": model,
-            "vector_unit": next((unit for unit in VECTOR_UNITS if unit in flags), "unknown"),
-            "python": platform.python_version(), "load_1min": round(os.getloadavg()[0], 2)}
+    """Platform, CPU count, the CPU's name and LLVM's (the target numba compiles the kernels for), the widest
+    vector unit LLVM may use there, and the Python version. What the machine is, not its load at the moment."""
+    import llvmlite.binding as llvm
+
+    features = llvm.get_host_cpu_features()
+    return {"platform": platform.platform(), "cpus": os.cpu_count(), "cpu_model": _model_name(),
+            "llvm_cpu": llvm.get_host_cpu_name(),
+            "vector_unit": next((unit for unit in VECTOR_UNITS if features.get(unit, False)), "unknown"),
+            "python": platform.python_version()}
 
 
 def summary(machine: dict) -> str:
     """One line for a table's caption: the CPU, its vector unit and its count, where the result recorded them."""
     cpus = machine.get("cpus") or machine.get("cpu_count")
-    cpu = f"{machine['cpu_model']}, {machine.get('vector_unit', 'unknown')}, " if "cpu_model" in machine else ""
-    return f"{machine.get('platform', 'not recorded')}, {cpu}{cpus or '?'} CPUs"
+    parts = [machine.get("platform", "not recorded")]
+    if "cpu_model" in machine:
+        llvm_cpu = f" ({machine['llvm_cpu']})" if "llvm_cpu" in machine else ""
+        parts += [f"{machine['cpu_model']}{llvm_cpu}", machine.get("vector_unit", "unknown")]
+    return ", ".join([*parts, f"{cpus or '?'} CPUs"])
 
 
-def _cpuinfo() -> dict[str, str]:
-    """The first processor's fields in /proc/cpuinfo; empty where there is none (not Linux)."""
+def _model_name() -> str:
+    """The CPU's marketing name from /proc/cpuinfo (Python's platform.processor() is empty on Linux)."""
     path = Path("/proc/cpuinfo")
-    if not path.is_file():
-        return {}
-    fields: dict[str, str] = {}
-    for line in path.read_text().splitlines():
-        if not line.strip():
-            if fields:
-                break
-            continue
-        key, _, value = line.partition(":")
-        fields.setdefault(key.strip(), value.strip())
-    return fields
+    lines = path.read_text().splitlines() if path.is_file() else []
+    name = next((line.partition(":")[2].strip() for line in lines if line.startswith("model name")), "")
+    return name or platform.processor() or platform.machine()
