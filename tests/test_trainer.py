@@ -343,6 +343,9 @@ def test_an_sos_just_below_its_target_reads_as_below_it_in_the_reason():
     cfg = ExtendConfig(max_extra_steps=1_000)
     evals = [{"step": 4000, "psnr": 31.39, "sos": 0.9271}, {"step": 4500, "psnr": 31.26, "sos": 0.94986}]
     assert extension_decision(cfg, evals, 0, 500)["reason"] == "SOS 0.9499 below 0.95 and still rising"
+    closer = [evals[0], {**evals[1], "sos": 0.949996}]
+    assert extension_decision(cfg, closer, 0, 500)["reason"] == "SOS 0.949996 below 0.95 and still rising"
+    assert extension_decision(cfg, [evals[0], {**evals[1], "sos": 0.9412}], 0, 500)["reason"].startswith("SOS 0.941 ")
 
 
 def test_the_early_finish_needs_the_ngs_phases_over_and_every_held_out_figure_past_its_mark():

@@ -43,7 +43,8 @@ def early_finish_decision(cfg: ExtendConfig, evals: list[dict], phases_over: boo
     if sos < cfg.finish_sos or not psnr >= cfg.psnr_target_db or leak_px > cfg.finish_max_leak_px:
         return None
     return {"step": last.get("step"), "extend": False, "finished_early": True,
-            "reason": f"SOS {_sos(sos)} reached {cfg.finish_sos:g}, PSNR {psnr:.1f} dB is above {cfg.psnr_target_db:g} "
+            "reason": f"SOS {_sos(sos, cfg.finish_sos)} reached {cfg.finish_sos:g}, PSNR {psnr:.1f} dB is above "
+                      f"{cfg.psnr_target_db:g} "
                       f"and no held-out view shows more than {leak_px:.2g} px of the infill after the NGS phases: "
                       "the rest of the plan would not show in the asset"}
 
@@ -68,15 +69,21 @@ def extension_decision(cfg: ExtendConfig, evals: list[dict], extra_steps_so_far:
         per_block = (sos - window[0]) / (len(window) - 1)  # what the rule reads
         decision["sos_gain_per_block"] = round(per_block, 4)
         if sos < cfg.sos_target and per_block >= cfg.min_sos_gain:
-            return {**decision, "extend": True, "reason": f"SOS {_sos(sos)} below {cfg.sos_target} and still rising"}
+            return {**decision, "extend": True,
+                    "reason": f"SOS {_sos(sos, cfg.sos_target)} below {cfg.sos_target} and still rising"}
     if psnr_gain >= cfg.min_psnr_gain_db and last["psnr"] < cfg.psnr_target_db:
         return {**decision, "extend": True, "reason": f"held-out PSNR still rising ({psnr_gain:+.2f} dB)"}
     above = last["psnr"] >= cfg.psnr_target_db
     psnr = f"PSNR {last['psnr']:.1f} dB above {cfg.psnr_target_db:g}" if above else "PSNR flat"
     return {**decision, "reason": "held-out PSNR and SOS stopped improving" if sos is None or sos < cfg.sos_target
-            else f"SOS {_sos(sos)} reached {cfg.sos_target}, {psnr}"}
+            else f"SOS {_sos(sos, cfg.sos_target)} reached {cfg.sos_target}, {psnr}"}
 
 
-def _sos(sos: float) -> str:
-    """SOS for a decision's reason: four places, so that 0.94986 reads as below 0.95, not as "0.950 below 0.95"."""
-    return f"{sos:.4f}"
+def _sos(sos: float, target: float) -> str:
+    """SOS for a decision's reason: three places, or as many more as keep it on its side of `target`, so that
+    0.94986 reads "0.9499 below 0.95", never "0.950 below 0.95"."""
+    for places in range(3, 12):
+        text = f"{sos:.{places}f}"
+        if (float(text) < target) == (sos < target):
+            return text
+    return repr(sos)
