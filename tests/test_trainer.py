@@ -379,6 +379,27 @@ def test_a_run_opaque_before_its_plan_ends_stops_at_that_evaluation_and_stays_st
     assert again.resumed_from == 20 and again.steps == 20
 
 
+def test_between_evaluations_an_early_end_is_looked_for_every_finish_every_steps(scan, tmp_path):
+    scene = load_scene(scan[0])
+    passes = ExtendConfig(finish_sos=0.0, psnr_target_db=-math.inf, finish_max_leak_px=math.inf, finish_every=4)
+    trainer = Trainer(scene, replace(TINY, eval_every=10, extend=passes), tmp_path / "between")
+    report = trainer.run()
+    assert trainer.ngs.freeze_step == 14 and report.steps == 16  # the first check after the freeze, before step 20
+    assert [e.get("between_blocks", False) for e in trainer.evals] == [False, True]
+    assert trainer.extensions[0]["finished_early"] and trainer.extensions[0]["step"] == 16
+
+
+def test_an_extension_is_judged_on_whole_blocks_not_on_the_checks_between_them(scan, tmp_path):
+    scene = load_scene(scan[0])
+    rising = ExtendConfig(max_extra_steps=10, sos_target=1.01, min_sos_gain=-1.0, finish_sos=2.0, finish_every=5)
+    trainer = Trainer(scene, replace(TINY, eval_every=10, extend=rising), tmp_path / "blocks")
+    trainer.run()
+    at = {e["step"]: e for e in trainer.evals}
+    assert at[55]["between_blocks"] and not at[60].get("between_blocks")  # checks within the plan only
+    assert 65 not in at
+    first = trainer.extensions[0]
+    assert first["step"] == 60 and first["psnr_gain_db"] == round(at[60]["psnr"] - at[50]["psnr"], 4)
+
 def killed_and_resumed(scene, cfg: TrainConfig, root, kill_at: int):
     """An uninterrupted run, and a run interrupted before step `kill_at` then resumed: (whole, resumed, report)."""
     whole = Trainer(scene, cfg, root / "whole")

@@ -42,7 +42,7 @@ def fast_preset() -> TrainConfig:
         eval_every=500,
         densify=DensifyConfig(max_gaussians=60_000, per_object_pixel=2.65),
         ngs=NGSConfig(infill=InfillConfig(levels=(32, 64), erosion_iters=(3, 4))),
-        extend=ExtendConfig(max_extra_steps=3_000, finish_sos=0.95),
+        extend=ExtendConfig(max_extra_steps=3_000, finish_sos=0.95, finish_every=250),
         resolution=ResolutionConfig(start_downscale=2),
     )
 

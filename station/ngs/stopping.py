@@ -4,7 +4,8 @@ The NGS phases are fractions of a planned step count, so the plan has to be fixe
 scene needs shows only as it trains: a small stone on a softbox is opaque well before the fast
 preset's 2,500 steps, a larger or shinier one is not yet opaque at the end. So once the NGS phases
 are over, a run whose held-out SOS and PSNR are both at their targets, and whose infill shows through
-in no held-out view by half an 8-bit level even on one pixel, ends at that evaluation; and after the
+in no held-out view by half an 8-bit level even on one pixel, ends at that evaluation (looked for every
+`finish_every` steps too, between the evaluations: the criterion is absolute, not a gain); and after the
 plan, training goes on in blocks of `eval_every` steps while SOS is below its target and still
 rising, or while held-out PSNR still rises clearly and is below its own target, up to a cap. Every
 decision, with the figures behind it, is kept in train_metrics.json.
@@ -32,6 +33,9 @@ class ExtendConfig:
     # Summed green of the infill showing through, in pixels' worth of full green: half of one 8-bit level even
     # if it all fell on one pixel, so nothing of it can show in the asset. SOS, a log, still rises long after.
     finish_max_leak_px: float = 0.5 / 255
+    # Within the plan, once the NGS phases are over, an early end is also looked for every this many steps
+    # between the evaluations (0: at the evaluations only). Extensions are still judged on whole blocks.
+    finish_every: int = 0
 
 
 def early_finish_decision(cfg: ExtendConfig, evals: list[dict], phases_over: bool) -> dict | None:

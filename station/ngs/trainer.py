@@ -247,6 +247,10 @@ class Trainer:
                     self._decide_extension()
                 else:
                     last = self._finish_early()
+            elif self._finish_check_due():
+                self.evals.append({"step": self.step, "seconds": round(self.seconds, 2), "between_blocks": True,
+                                   **self.held_out()})
+                last = self._finish_early()
             if self.step % 100 == 0 or last:  # after the evaluation: an early finish makes this step the last
                 self.losses.append({"step": self.step, "seconds": round(self.seconds, 2), **terms})
                 if progress:
@@ -280,8 +284,15 @@ class Trainer:
             self.extensions.append(decision)
         return decision is not None
 
+    def _finish_check_due(self) -> bool:
+        """Whether to look for an early end at this step, between the evaluations (ExtendConfig.finish_every)."""
+        every = self.cfg.extend.finish_every
+        return (every > 0 and self.cfg.extend.finish_sos is not None and self.ngs is not None
+                and self.ngs.freeze_step <= self.step < self.cfg.steps and self.step % every == 0)
+
     def _decide_extension(self) -> None:
-        self.extensions.append(extension_decision(self.cfg.extend, self.evals, self.target_steps - self.cfg.steps,
+        blocks = [e for e in self.evals if not e.get("between_blocks")]  # gains are per block of eval_every
+        self.extensions.append(extension_decision(self.cfg.extend, blocks, self.target_steps - self.cfg.steps,
                                                   self.cfg.eval_every))
 
     def held_out(self) -> dict[str, float | None]:
