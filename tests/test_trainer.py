@@ -337,6 +337,9 @@ def test_the_extension_decision_reads_the_last_two_evaluations():
     before_infill = [{"step": 500, "psnr": 30.0, "sos": None}, {"step": 1000, "psnr": 30.1, "sos": None}]
     assert not extension_decision(cfg, before_infill, 0, 500)["extend"]
     assert extension_decision(ExtendConfig(), evals, 0, 500)["reason"] == "extension off"
+    check_between = {"step": 2750, "psnr": 42.0, "sos": 0.99, "between_blocks": True}  # left out: gains are per block
+    with_check = [evals[0], check_between, evals[1]]
+    assert extension_decision(cfg, with_check, 0, 500) == extension_decision(cfg, evals, 0, 500)
 
 
 def test_an_sos_just_below_its_target_reads_as_below_it_in_the_reason():
@@ -399,6 +402,7 @@ def test_an_extension_is_judged_on_whole_blocks_not_on_the_checks_between_them(s
     assert 65 not in at
     first = trainer.extensions[0]
     assert first["step"] == 60 and first["psnr_gain_db"] == round(at[60]["psnr"] - at[50]["psnr"], 4)
+
 
 def killed_and_resumed(scene, cfg: TrainConfig, root, kill_at: int):
     """An uninterrupted run, and a run interrupted before step `kill_at` then resumed: (whole, resumed, report)."""

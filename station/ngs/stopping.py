@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+BETWEEN_BLOCKS = "between_blocks"  # marks an evaluation made for the early finish alone, between two blocks
+
 
 @dataclass
 class ExtendConfig:
@@ -54,7 +56,9 @@ def early_finish_decision(cfg: ExtendConfig, evals: list[dict], phases_over: boo
 
 
 def extension_decision(cfg: ExtendConfig, evals: list[dict], extra_steps_so_far: int, block: int) -> dict:
-    """Whether to train one more block, judged on the last held-out evaluations."""
+    """Whether to train one more block, judged on the last held-out evaluations at block ends (the gains are per
+    block: the checks between blocks are left out)."""
+    evals = [e for e in evals if not e.get(BETWEEN_BLOCKS)]
     last = evals[-1] if evals else {}
     decision = {"step": last.get("step"), "extend": False, "reason": ""}
     if cfg.max_extra_steps <= 0:

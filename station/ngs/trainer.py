@@ -27,7 +27,7 @@ from station.ngs.ngs_schedule import NGSConfig, NGSPhases
 from station.ngs.raster import rasterization
 from station.ngs.resolution import ResolutionConfig, resolution_decision
 from station.ngs.sos import held_out_sos
-from station.ngs.stopping import ExtendConfig, early_finish_decision, extension_decision
+from station.ngs.stopping import BETWEEN_BLOCKS, ExtendConfig, early_finish_decision, extension_decision
 from station.ngs.strategy import DefaultStrategy, DensifyConfig, DensifyState
 from station.scanfolder import atomic_write_with
 
@@ -241,16 +241,14 @@ class Trainer:
             last = self.step == self.target_steps
             if self.level_downscale > 1 and self.step % self.cfg.resolution.check_steps(self.cfg.steps) == 0:
                 self._check_resolution()
-            if self.cfg.eval_every and (self.step % self.cfg.eval_every == 0 or last):
-                self.evals.append({"step": self.step, "seconds": round(self.seconds, 2), **self.held_out()})
+            on_block = bool(self.cfg.eval_every) and (self.step % self.cfg.eval_every == 0 or last)
+            if on_block or self._finish_check_due():
+                between = {} if on_block else {BETWEEN_BLOCKS: True}
+                self.evals.append({"step": self.step, "seconds": round(self.seconds, 2), **between, **self.held_out()})
                 if last:
                     self._decide_extension()
                 else:
                     last = self._finish_early()
-            elif self._finish_check_due():
-                self.evals.append({"step": self.step, "seconds": round(self.seconds, 2), "between_blocks": True,
-                                   **self.held_out()})
-                last = self._finish_early()
             if self.step % 100 == 0 or last:  # after the evaluation: an early finish makes this step the last
                 self.losses.append({"step": self.step, "seconds": round(self.seconds, 2), **terms})
                 if progress:
@@ -278,21 +276,23 @@ class Trainer:
         self.resolution_checks.append(decision)
 
     def _finish_early(self) -> bool:
-        phases_over = self.ngs is not None and self.step >= self.ngs.freeze_step
-        decision = early_finish_decision(self.cfg.extend, self.evals, phases_over)
+        decision = early_finish_decision(self.cfg.extend, self.evals, self._ngs_phases_over())
         if decision is not None:
             self.extensions.append(decision)
         return decision is not None
 
+    def _ngs_phases_over(self) -> bool:
+        """The infill is final: from here on an early end can be decided."""
+        return self.ngs is not None and self.step >= self.ngs.freeze_step
+
     def _finish_check_due(self) -> bool:
         """Whether to look for an early end at this step, between the evaluations (ExtendConfig.finish_every)."""
         every = self.cfg.extend.finish_every
-        return (every > 0 and self.cfg.extend.finish_sos is not None and self.ngs is not None
-                and self.ngs.freeze_step <= self.step < self.cfg.steps and self.step % every == 0)
+        return (every > 0 and self.cfg.extend.finish_sos is not None and self._ngs_phases_over()
+                and self.step < self.cfg.steps and self.step % every == 0)
 
     def _decide_extension(self) -> None:
-        blocks = [e for e in self.evals if not e.get("between_blocks")]  # gains are per block of eval_every
-        self.extensions.append(extension_decision(self.cfg.extend, blocks, self.target_steps - self.cfg.steps,
+        self.extensions.append(extension_decision(self.cfg.extend, self.evals, self.target_steps - self.cfg.steps,
                                                   self.cfg.eval_every))
 
     def held_out(self) -> dict[str, float | None]:
