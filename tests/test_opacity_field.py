@@ -43,3 +43,15 @@ def test_the_field_equals_a_dense_evaluation_for_discs_needles_and_blobs():
     expected = dense_opacity(model, origin, voxel, shape)
     assert (expected > 0.5).mean() > 0.005 and (expected == 0).mean() > 0.2
     np.testing.assert_allclose(field, expected, rtol=0, atol=1e-12)
+
+
+def test_where_the_transmittance_underflows_the_field_is_exactly_one_and_finite_everywhere():
+    """Two thousand saturated Gaussians on one point: prod(1 - 0.99) leaves the float range there."""
+    n, voxel, shape = 2_000, 0.004, (9, 9, 9)
+    origin = np.full(3, -0.016)
+    model = SplatModel(np.zeros((n, 3)), np.full((n, 3), np.log(0.004)), np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
+                       np.full(n, 20.0), np.zeros((n, 3)), np.zeros((n, 0, 3)))
+    field = opacity_field(model, origin, voxel, shape)
+    assert np.isfinite(field).all() and field[4, 4, 4] == 1.0
+    assert 0.99 < field[4, 4, 1] < 1.0 and field[0, 0, 0] == 0.0  # three voxels out; a corner, past 1/255
+    np.testing.assert_allclose(field, dense_opacity(model, origin, voxel, shape), rtol=0, atol=1e-12)

@@ -129,8 +129,8 @@ def test_nan_or_inf_in_any_input_is_a_bad_input_error_naming_it(name, bad):
                       inputs["viewmats"], inputs["Ks"], 8, 8, backgrounds=inputs["backgrounds"])
 
 
-# The check runs before any backend. float64 renders with the torch reference: the float64 numba kernels
-# would otherwise be compiled here (half a minute) only to show that huge values pass.
+# The check runs before any backend. float64 renders with the torch reference: the numba backend would compile
+# its float64 kernels here only to show that huge values pass.
 @pytest.mark.parametrize(("dtype", "backend"), [(torch.float32, "cpu"), (torch.float64, "torch")])
 def test_nan_or_inf_anywhere_in_a_million_sh_coefficients_is_found(dtype, backend):
     """Large inputs are checked in parallel chunks: a bad value in the first, a middle or the last one is found,
