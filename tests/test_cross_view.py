@@ -21,7 +21,7 @@ from station.process.images_io import read_mask_png
 from station.process.masks import compute_mask
 from station.formats.transforms import PinholeCamera
 from station.process.stage import process_scan
-from station.process.visual_hull import carve_grid, grid_points, view_bounds
+from station.process.visual_hull import _carve, carve_grid, grid_points, view_bounds
 from station.rig_geometry import RigGeometry, camera_to_turntable
 from station.scanfolder import ScanFolder
 
@@ -119,6 +119,16 @@ def test_the_carve_keeps_a_voxel_that_no_more_than_max_misses_of_the_views_seein
         inside, _ = carve_grid(c2ws, masks, INTRINSICS, grid, max_misses=max_misses)
         assert expected.sum() > 50
         assert (inside != expected).sum() <= 2, max_misses  # float32 and float64 may part at a pixel's edge
+
+
+def test_carving_with_and_without_colour_runs_one_compiled_kernel(rings) -> None:
+    """The cross-view hull carves without colour and the posing hull with it: one compile serves both."""
+    c2ws, masks = [c2w for c2w, _ in rings[40.0][:4]], [mask for _, mask in rings[40.0][:4]]
+    images = [np.zeros((*mask.shape, 3), np.uint8) for mask in masks]
+    grid = grid_points(*view_bounds(c2ws, INTRINSICS), 8)
+    carve_grid(c2ws, masks, INTRINSICS, grid)
+    carve_grid(c2ws, masks, INTRINSICS, grid, images)
+    assert len(_carve.signatures) == 1, _carve.signatures
 
 
 def test_a_hull_above_a_share_of_its_height_drops_the_surface_below_it() -> None:

@@ -223,6 +223,8 @@ def test_depth_at_a_per_pixel_alpha_level_agrees_with_the_reference():
     assert torch.equal(torch.isinf(cpu), torch.isinf(reference))
     torch.testing.assert_close(cpu[torch.isfinite(cpu)], reference[torch.isfinite(reference)], atol=1e-9, rtol=0)
     assert not torch.equal(torch.isfinite(cpu), torch.isfinite(median_depth(*args, backend="cpu")))
+    float64 = [sig for sig in _kernels.median_depth_fwd.signatures if sig[0].dtype.name == "float64"]
+    assert len(float64) == 1, float64  # a scalar level and a per-pixel one share one compiled kernel
 
 
 def test_median_depth_sits_on_the_first_opaque_layer_where_expected_depth_does_not():

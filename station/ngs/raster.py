@@ -342,9 +342,10 @@ def median_depth(
                                                          near_plane)
         bins = _kernels.bin_gaussians(m2, conics, opac, radii, depths, width, height)
         level = _host(alpha_level) if isinstance(alpha_level, Tensor) else alpha_level
-        levels = np.broadcast_to(np.asarray(level, m2.dtype), (height, width))
-        out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], bins[2], width, height,
-                                        np.ascontiguousarray(levels), means.dtype == torch.float32)
+        levels = np.empty((height, width), m2.dtype)  # always writable: a read-only array is another compile
+        levels[...] = level
+        out = _kernels.median_depth_fwd(m2, conics, opac, depths, bins[0], bins[1], bins[2], width, height, levels,
+                                        means.dtype == torch.float32)
         return torch.from_numpy(out).to(means.device)
 
 

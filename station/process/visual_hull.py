@@ -71,10 +71,12 @@ def carve_grid(
         return np.zeros(len(grid), dtype=bool), (np.zeros((len(grid), 3)) if images is not None else None)
     w2cs = np.stack([np.linalg.inv(c2w)[:3] for c2w in c2ws])
     stacked_masks, sizes = _stack_padded([np.asarray(m, dtype=bool) for m in masks])
-    stacked_images = _stack_padded([np.asarray(im)[..., :3] for im in images])[0] if images is not None else None
+    # uint8 either way (the images are 8-bit RGB): a float placeholder compiled the carve a second time
+    stacked_images = (_stack_padded([np.asarray(im)[..., :3] for im in images])[0] if images is not None
+                      else np.zeros((1, 1, 1, 3), np.uint8))
     inside, colours = _carve(np.ascontiguousarray(grid, dtype=np.float64), w2cs, intr.matrix().astype(np.float64),
-                             stacked_masks, sizes, stacked_images if stacked_images is not None else np.zeros((1, 1, 1, 3)),
-                             stacked_images is not None, max_misses, max(2, len(c2ws) // 2))
+                             stacked_masks, sizes, stacked_images, images is not None, max_misses,
+                             max(2, len(c2ws) // 2))
     return inside, colours if images is not None else None
 
 
