@@ -122,11 +122,12 @@ def test_the_carve_keeps_a_voxel_that_no_more_than_max_misses_of_the_views_seein
 
 
 def test_carving_with_and_without_colour_runs_one_compiled_kernel(rings) -> None:
-    """The cross-view hull carves without colour and the posing hull with it: one compile serves both."""
+    """The cross-view hull carves without colour and the posing hull with it, from poses of either float width:
+    one compile serves them all."""
     c2ws, masks = [c2w for c2w, _ in rings[40.0][:4]], [mask for _, mask in rings[40.0][:4]]
     images = [np.zeros((*mask.shape, 3), np.uint8) for mask in masks]
     grid = grid_points(*view_bounds(c2ws, INTRINSICS), 8)
-    carve_grid(c2ws, masks, INTRINSICS, grid)
+    carve_grid([c2w.astype(np.float32) for c2w in c2ws], masks, INTRINSICS, grid)
     carve_grid(c2ws, masks, INTRINSICS, grid, images)
     assert len(_carve.signatures) == 1, _carve.signatures
 

@@ -69,9 +69,10 @@ def carve_grid(
     masks [N] bool, and their mean colour [N, 3] over the views (when `images` are given)."""
     if len(c2ws) == 0:
         return np.zeros(len(grid), dtype=bool), (np.zeros((len(grid), 3)) if images is not None else None)
-    w2cs = np.stack([np.linalg.inv(c2w)[:3] for c2w in c2ws])
+    # numba compiles the carve once per argument type: poses of any float width go in as float64, and the
+    # colourless placeholder is uint8 like the images (8-bit RGB from every caller)
+    w2cs = np.stack([np.linalg.inv(np.asarray(c2w, np.float64))[:3] for c2w in c2ws])
     stacked_masks, sizes = _stack_padded([np.asarray(m, dtype=bool) for m in masks])
-    # uint8 either way (the images are 8-bit RGB): a float placeholder compiled the carve a second time
     stacked_images = (_stack_padded([np.asarray(im)[..., :3] for im in images])[0] if images is not None
                       else np.zeros((1, 1, 1, 3), np.uint8))
     inside, colours = _carve(np.ascontiguousarray(grid, dtype=np.float64), w2cs, intr.matrix().astype(np.float64),
