@@ -19,6 +19,8 @@ from station.batch.store import JobStore
 from station.cli_batch import batch_app
 from station.scanfolder import ScanFolder
 
+pytestmark = pytest.mark.no_kernels
+
 runner = CliRunner()
 
 

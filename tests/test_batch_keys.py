@@ -24,6 +24,8 @@ from station.batch.stages import (
 )
 from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_json, sha256_file
 
+pytestmark = pytest.mark.no_kernels
+
 PROCESS, TRAIN, EXPORT = STAGES
 
 

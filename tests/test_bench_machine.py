@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.no_kernels
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from machine import VECTOR_UNITS, describe, summary  # noqa: E402
 

@@ -12,6 +12,8 @@ from sim.dng import dng_bytes, read_dng
 from sim.sensor import SRGB_TO_XYZ, SensorModel
 from station.errors import BadInputError
 
+pytestmark = pytest.mark.no_kernels
+
 
 @pytest.fixture(scope="module")
 def sensor() -> SensorModel:

@@ -6,10 +6,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import trimesh
 
 from station.export.gate import GateConfig, evaluate_gate, write_gate
 from station.export.mesh import check_mesh
+
+pytestmark = pytest.mark.no_kernels
 
 
 def good_metrics() -> dict:

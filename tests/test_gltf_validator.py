@@ -23,6 +23,8 @@ from station.export.mesh import write_mesh_files
 from station.export.splat_formats import write_splat
 from test_splat_formats import node_tool, random_model
 
+pytestmark = pytest.mark.no_kernels
+
 REPORT = """
 const validator = require(process.argv[1]);
 const fs = require('fs');

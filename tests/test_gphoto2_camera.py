@@ -22,7 +22,8 @@ from station.capture.gphoto2_camera import nearest_choice, parse_fnumber, parse_
 from station.errors import BadInputError
 
 GPHOTO2 = importlib.util.find_spec("gphoto2")
-pytestmark = pytest.mark.skipif(GPHOTO2 is None, reason="python-gphoto2 is not installed")
+pytestmark = [pytest.mark.skipif(GPHOTO2 is None, reason="python-gphoto2 is not installed"),
+              pytest.mark.no_kernels]
 RGGB_ENTRY = bytes.fromhex("8e820100040000000001 0102".replace(" ", ""))  # CFAPattern: BYTE x4 = 0 1 1 2
 GRBG_ENTRY = RGGB_ENTRY[:8] + bytes([1, 0, 2, 1])
 

@@ -13,7 +13,7 @@ from sim.grbl_motion import move_segment
 from station.turntable.errors import GarbledStatusError
 from station.turntable.status import parse_status
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.no_kernels]
 HALF_STEP = 0.5 / 44.444  # targets and stops land on whole motor steps
 
 

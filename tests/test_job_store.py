@@ -11,6 +11,8 @@ import pytest
 from station.batch.store import JobStore, StoreConfig
 from station.errors import BadInputError
 
+pytestmark = pytest.mark.no_kernels
+
 
 class Clock:
     def __init__(self):

@@ -30,6 +30,8 @@ from station.capture.ptp_codec import (
 from station.capture.transport import CameraNotFoundError
 from station.errors import BadInputError, DeviceDisconnectedError, DeviceError
 
+pytestmark = pytest.mark.no_kernels
+
 FRAME = random.Random(15740).randbytes(300_000)  # spans hundreds of 512-byte packets
 FAST = PtpConfig(timeout_ms=150, capture_timeout_s=2.0, event_poll_ms=20, busy_backoff_s=0.002, busy_backoff_max_s=0.01)
 

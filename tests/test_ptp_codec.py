@@ -39,6 +39,8 @@ from station.capture.ptp_codec import (
 )
 from station.errors import BadInputError, DeviceError
 
+pytestmark = pytest.mark.no_kernels
+
 u32 = st.integers(0, 0xFFFFFFFF)
 ptp_text = st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\x00"), max_size=60)
 

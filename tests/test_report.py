@@ -24,6 +24,8 @@ from station.export.report import (
     write_report,
 )
 
+pytestmark = pytest.mark.no_kernels
+
 GOOD = {"sos": 0.97, "psnr": 33.2, "ssim": 0.95, "psnr_star": 33.1, "ssim_star": 0.95, "lpips": "skipped",
         "num_gaussians": 12000, "num_infill": 1700, "train_seconds": 812.5, "mesh_watertight": True,
         "mesh_manifold": True, "mesh_problems": [], "mesh_volume_m3": 1.1e-4, "infill_volume_m3": 1.08e-4,

@@ -135,6 +135,7 @@ def test_on_real_grbl_firmware_the_check_reads_its_version_and_settings(grbl_sim
         bridge.terminate()
         bridge.wait(10)
     assert code == 3 or eeprom, found
+    assert ("turntable", "firmware") in found, found  # not a refused connect
     assert found["turntable", "firmware"]["detail"].startswith("Grbl 1.1h (1.1h.20190830:)")
     motion = [f"${n}" for n in (100, 101, 110, 111, 120, 121)]
     if eeprom:  # the rig's own settings: every one matches the config

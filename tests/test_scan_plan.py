@@ -5,6 +5,8 @@ import pytest
 from station.capture.plan import ScanPlan, default_elevations
 from station.errors import BadInputError
 
+pytestmark = pytest.mark.no_kernels
+
 
 def test_default_plan_is_six_by_forty_plus_one_plate_per_elevation():
     plan = ScanPlan()

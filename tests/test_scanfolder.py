@@ -9,6 +9,8 @@ import pytest
 from station.errors import ScanFolderError
 from station.scanfolder import ManifestEntry, ScanFolder, atomic_write_bytes, remove_tree, sha256_bytes
 
+pytestmark = pytest.mark.no_kernels
+
 
 def test_atomic_write_replaces_whole_file_and_leaves_no_temp(tmp_path):
     target = tmp_path / "a" / "frame.bin"

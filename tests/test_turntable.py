@@ -36,7 +36,7 @@ from station.turntable.planning import move_seconds, trapezoid_seconds
 from station.turntable.reference import Reference
 from station.turntable.status import parse_status
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.no_kernels]
 FAST = TurntableConfig(banner_timeout_s=1.0, reply_timeout_s=0.5, motion_margin_s=1.0, reconnect_timeout_s=3.0)
 SCALE = 0.02  # emulated motion runs 50x faster than the real table
 HALF_STEP = 0.5 / 44.444 + 1e-3  # GRBL lands on whole steps; reports carry 3 decimals

@@ -22,6 +22,8 @@ from station.formats.transforms import parse_transforms, pinhole, shared_pinhole
 from station.ngs.checkpoint_io import load_infill_file, load_surface_file, load_training_checkpoint
 from station.scanfolder import ManifestEntry, ScanFolder, sha256_bytes
 
+pytestmark = pytest.mark.no_kernels
+
 W, H = 64, 48
 C2W = np.array([[1.0, 0, 0, 0.1], [0, 0, -1, -2.0], [0, 1, 0, 0.3], [0, 0, 0, 1]])
 

@@ -9,6 +9,10 @@ import textwrap
 import time
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.no_kernels
+
 PARENT = textwrap.dedent("""
     import os, sys, time
     from pathlib import Path

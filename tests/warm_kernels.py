@@ -1,4 +1,4 @@
-"""Compile every stage's numba kernels into one cache before the test workers start (see conftest.py).
+"""Compile every stage's numba kernels into one cache while the tests that call none run (see conftest.py).
 
 Two processes compile at once, each in modules of its own, so no kernel's cache index is written by
 both: the rasteriser's kernels (station.ngs.warmup) in one; in the other a tiny scan's process stage,
