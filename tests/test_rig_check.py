@@ -118,10 +118,11 @@ def run_real_firmware(binary: str, workdir: Path, eeprom: str | None) -> subproc
     os.mkfifo(workdir / "ctl")
     bridge = subprocess.Popen([sys.executable, str(GRBL_SIM / "pty-bridge.py"), str(workdir / "tty"), str(workdir),
                                str(workdir / "log"), str(workdir / "ctl")], env={**os.environ, "GRBL_SIM": binary})
-    deadline = time.monotonic() + 20
-    while not (workdir / "tty").exists() and time.monotonic() < deadline:
+    # It ignores input until it has booted, which ends with its power-on banner: a second on a quiet machine,
+    # more under load. The bridge logs every byte it sends.
+    log, deadline = workdir / "log", time.monotonic() + 30
+    while time.monotonic() < deadline and not (log.is_file() and "Grbl 1.1h" in log.read_text(errors="replace")):
         time.sleep(0.05)
-    time.sleep(3.0)  # it ignores input for its first simulated second, then may still send its power-on banner
     return bridge
 
 
