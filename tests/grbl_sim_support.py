@@ -68,6 +68,15 @@ class GrblSimBridge:
                 raise RuntimeError(f"grbl-sim bridge did not come up in {workdir}")
             time.sleep(0.02)
 
+    def wait_booted(self, timeout_s: float = 30.0) -> None:
+        """Until the firmware's power-on banner is in the bridge's log: it ignores input before that, which is a
+        second on a quiet machine and longer under load."""
+        deadline = time.monotonic() + timeout_s
+        while "Grbl 1.1h" not in self.traffic():
+            if time.monotonic() > deadline or self._proc.poll() is not None:
+                raise RuntimeError(f"grbl-sim did not boot within {timeout_s:g} s; bridge log: {self.log}")
+            time.sleep(0.05)
+
     def control(self, command: str) -> None:
         """A bridge command: `killfw`, `startfw`, `inject HEX`, `unplug SECS`."""
         fd = os.open(self._ctl, os.O_WRONLY | os.O_NONBLOCK)

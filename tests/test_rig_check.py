@@ -2,23 +2,18 @@
 camera, and (when gcc and ../shared are there) the real GRBL 1.1h firmware built as grbl-sim."""
 
 import json
-import os
-import shutil
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
+from grbl_sim_support import SHARED_GRBL_SIM, GrblSimBridge, build_grbl_sim
 from sim.grbl_links import start_fake_turntable
 from station.cli import app
 from station.cli_rig import compare_settings
 from station.config import parse_config
 
 runner = CliRunner()
-GRBL_SIM = Path(__file__).resolve().parents[1].parent / "shared" / "tools" / "grbl-sim"
 
 
 def write_config(tmp_path: Path, port: str, extra: str = "") -> Path:
@@ -100,41 +95,22 @@ def test_travel_must_reach_the_config_only_where_soft_limits_enforce_it():
 
 # ---- the real firmware ------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def grbl_sim_binary(tmp_path_factory):
-    if not (GRBL_SIM / "build.sh").is_file() or shutil.which("gcc") is None or shutil.which("make") is None:
-        pytest.skip("grbl-sim needs ../shared/tools/grbl-sim, gcc and make")
-    out = tmp_path_factory.mktemp("grbl-sim")
-    built = subprocess.run(["bash", str(GRBL_SIM / "build.sh"), str(out)], capture_output=True, text=True, timeout=300)
-    if built.returncode != 0:
-        pytest.skip(f"grbl-sim did not build: {built.stderr[-300:]}")
-    return built.stdout.strip().splitlines()[-1]
-
-
-def run_real_firmware(binary: str, workdir: Path, eeprom: str | None) -> subprocess.Popen:
-    """grbl-sim behind the shared pty bridge; `eeprom` None starts from GRBL's factory settings."""
-    workdir.mkdir()
-    if eeprom:
-        shutil.copy(GRBL_SIM / eeprom, workdir / "EEPROM.DAT")
-    os.mkfifo(workdir / "ctl")
-    bridge = subprocess.Popen([sys.executable, str(GRBL_SIM / "pty-bridge.py"), str(workdir / "tty"), str(workdir),
-                               str(workdir / "log"), str(workdir / "ctl")], env={**os.environ, "GRBL_SIM": binary})
-    # It ignores input until it has booted, which ends with its power-on banner: a second on a quiet machine,
-    # more under load. The bridge logs every byte it sends.
-    log, deadline = workdir / "log", time.monotonic() + 30
-    while time.monotonic() < deadline and not (log.is_file() and "Grbl 1.1h" in log.read_text(errors="replace")):
-        time.sleep(0.05)
-    return bridge
+def grbl_sim_binary(tmp_path_factory) -> Path:
+    exe = build_grbl_sim(tmp_path_factory.mktemp("grbl-sim"))
+    if exe is None:
+        pytest.skip(f"grbl-sim cannot be built here (needs gcc, make, stdbuf and {SHARED_GRBL_SIM})")
+    return exe
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("eeprom", ["EEPROM.rig.DAT", None])
 def test_on_real_grbl_firmware_the_check_reads_its_version_and_settings(grbl_sim_binary, tmp_path, eeprom):
-    bridge = run_real_firmware(grbl_sim_binary, tmp_path / "fw", eeprom)
+    bridge = GrblSimBridge(grbl_sim_binary, tmp_path / "fw", SHARED_GRBL_SIM / eeprom if eeprom else None)
     try:
-        code, found = check(write_config(tmp_path, f"grbl://{tmp_path / 'fw' / 'tty'}"))
+        bridge.wait_booted()
+        code, found = check(write_config(tmp_path, f"grbl://{bridge.port}"))
     finally:
-        bridge.terminate()
-        bridge.wait(10)
+        bridge.close()
     assert code == 3 or eeprom, found
     assert ("turntable", "firmware") in found, found  # not a refused connect
     assert found["turntable", "firmware"]["detail"].startswith("Grbl 1.1h (1.1h.20190830:)")
