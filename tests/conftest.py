@@ -10,6 +10,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -22,8 +23,8 @@ os.environ.setdefault("COLUMNS", "240")
 _ROOT = Path(__file__).resolve().parents[1]
 _WARM_CACHE = _ROOT / ".pytest_cache" / "numba" / "warm"  # every stage's kernels, compiled once per source change
 _STAMP = "sources.sha256"
-# Set by the controller while it compiles the warm cache: the file it writes when the compile has ended, however.
-_WARMING_ENV = "STATION_TEST_WARM_CACHE_ENDED"
+_WARM_ENDED = _WARM_CACHE.parent / "warm.ended"  # written when the controller's compile ends, however it ends
+_WARMING_ENV = "STATION_TEST_WARMING"  # set by the controller while it compiles: the workers must wait for it
 _WORKER = os.environ.get("PYTEST_XDIST_WORKER")
 if _WORKER:
     # One xdist worker per core: each worker, and every stage process it starts, keeps to one thread,
@@ -47,8 +48,8 @@ def _adopt_warm_cache() -> None:
     global _warm_cache_adopted
     if _warm_cache_adopted:
         return
-    ended, deadline = os.environ.get(_WARMING_ENV), time.monotonic() + 960  # the compile's own limit is 900 s
-    while ended and not Path(ended).exists() and time.monotonic() < deadline:
+    deadline = time.monotonic() + 960  # the compile's own limit is 900 s
+    while _WARMING_ENV in os.environ and not _WARM_ENDED.exists() and time.monotonic() < deadline:
         time.sleep(0.2)
     warm_stamp, own_stamp = _WARM_CACHE / _STAMP, Path(os.environ["NUMBA_CACHE_DIR"]) / _STAMP
     if _WORKER and warm_stamp.is_file() and (not own_stamp.is_file()
@@ -76,15 +77,14 @@ class _WarmUp:
 
     def __init__(self, digest: str) -> None:
         self.digest, self.started, self.failure, self.seconds = digest, time.monotonic(), None, None
-        self.ended = _WARM_CACHE.parent / "warm.ended"
-        self.ended.unlink(missing_ok=True)
+        _WARM_ENDED.unlink(missing_ok=True)
         (_WARM_CACHE / _STAMP).unlink(missing_ok=True)  # the cache is being rewritten: no worker may adopt it
         _WARM_CACHE.mkdir(parents=True, exist_ok=True)
         self.workdir = tempfile.mkdtemp(prefix="station-warm-")
         self.process = subprocess.Popen([sys.executable, str(_ROOT / "tests" / "warm_kernels.py"), self.workdir],
                                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                                         start_new_session=True)
-        os.environ[_WARMING_ENV] = str(self.ended)  # inherited by the workers, which start after this
+        os.environ[_WARMING_ENV] = "1"  # inherited by the workers, which start after this
         self.thread = threading.Thread(target=self._wait, name="kernel-warm-up", daemon=True)
         self.thread.start()
 
@@ -98,23 +98,25 @@ class _WarmUp:
             else:
                 self.failure = f"it was stopped by signal {-self.process.returncode}"
         except subprocess.TimeoutExpired:
-            self.stop()
+            self._kill()
+            self.process.communicate()
             self.failure = "it ran past 900 s"
         finally:
             self.seconds = time.monotonic() - self.started
             shutil.rmtree(self.workdir, ignore_errors=True)
-            self.ended.touch()
+            _WARM_ENDED.touch()
 
-    def stop(self) -> None:
-        """End the compile and the stage processes it started (the tests left needed none of it)."""
+    def _kill(self) -> None:
+        """The compile and the stage processes it started."""
         try:
             os.killpg(self.process.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
-        if threading.current_thread() is self.thread:
-            self.process.wait()
-        else:
-            self.thread.join()
+
+    def stop(self) -> None:
+        """End the compile: the tests left needed none of it."""
+        self._kill()
+        self.thread.join()
 
 
 _warm_up: _WarmUp | None = None
@@ -139,14 +141,9 @@ def pytest_configure(config: pytest.Config) -> None:
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """The modules marked `no_kernels` first, those with the most tests first (as xdist's own reorder would):
     they run while the kernels compile. The rest keep their order."""
-    def module(item: pytest.Item) -> str:
-        return item.nodeid.split("::")[0]
-
-    tests_per_module: dict[str, int] = {}
-    for item in items:
-        tests_per_module[module(item)] = tests_per_module.get(module(item), 0) + 1
-    items.sort(key=lambda item: (0, -tests_per_module[module(item)]) if item.get_closest_marker("no_kernels")
-               else (1, 0))
+    tests_per_module = Counter(item.nodeid.split("::")[0] for item in items)
+    items.sort(key=lambda item: (0, -tests_per_module[item.nodeid.split("::")[0]])
+               if item.get_closest_marker("no_kernels") else (1, 0))
 
 
 _no_kernels_test_started = 0.0
