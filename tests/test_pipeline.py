@@ -77,6 +77,13 @@ def test_a_trained_scan_is_done_for_the_cli_the_batch_and_the_dashboard(trained)
     assert not any(p.name.startswith(".model.") for p in trained.iterdir())  # no fresh or old folder left
 
 
+def test_the_train_report_names_the_model_folder_it_was_swapped_into(trained):
+    scan = ScanFolder(trained)
+    metrics = json.loads((scan.model_dir / "train_metrics.json").read_text())
+    for report in (read_record(scan, "train")["summary"], scan.stage_info("train"), metrics["report"]):
+        assert report["model_dir"] == str(scan.model_dir)
+
+
 # -- containment ----------------------------------------------------------------------------------
 @pytest.mark.parametrize("folder", ["model", ".model.new", "stages"])
 def test_a_symlinked_stage_folder_is_refused_and_nothing_is_written_through_it(trained, tmp_path, folder):

@@ -6,7 +6,7 @@ the atomic writers.
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Callable
 
@@ -66,7 +66,8 @@ def train_scan(scan_root: Path | ScanFolder, method: str = "ngs", preset: str = 
     cfg = make_config(method, preset)
     scene = load_scene(scan.root, downscale=cfg.downscale, seed=cfg.seed)
     trainer = Trainer(scene, cfg, scan.model_dir, inputs)
-    report = trainer.run(progress)
+    # a staged view trains in `.model.new`; the report names the folder the model is swapped into
+    report = replace(trainer.run(progress), model_dir=str(ScanFolder(scan.root).model_dir))
     write_model(trainer, report)
     scan.mark_done("train", asdict(report))
     return report
