@@ -50,7 +50,7 @@ def num(value: object, digits: int = 3) -> str:
 
 
 def kind_of(data: dict) -> str:
-    if data.get("benchmark") in ("demo", "plans", "thread_pools"):
+    if data.get("benchmark") in ("demo", "plans", "thread_pools", "spin_count"):
         return data["benchmark"]
     if data.get("benchmark") == "raster" and "before" in data:
         return "raster_ab"
@@ -234,6 +234,19 @@ def thread_pools_section(name: str, data: dict) -> Section:
     return lines, {}
 
 
+def spin_count_section(name: str, data: dict) -> Section:
+    rows = [["loaded" if c["loaded"] else "quiet", c["spin_count"], num(c["step_ms"], 1), num(c["ratio_vs_passive"], 2),
+             num(c["mean_step_ms"], 1), num(c["mean_ratio_vs_passive"], 2), num(c["cpu_ms"], 1), num(c["load_1min"], 2)]
+            for c in data["configs"]]
+    lines = [f"`bench/raster.py`'s step ({num(data['gaussians'])} Gaussians, {data['size'][0]}², 2 threads) with "
+             "OMP_WAIT_POLICY=PASSIVE and libgomp's GOMP_SPINCOUNT, each in a fresh process, in turns; the peer is 0 "
+             f"(passive: sleep at once). Load: {data['load']}. Medians over {data['rounds']} rounds, in ms. Same "
+             "step, so no error axis.", ""]
+    lines += table(["machine", "GOMP_SPINCOUNT", "median ms", "× passive", "mean ms", "× passive", "CPU ms a step",
+                    "1-min load"], rows)
+    return lines, {}
+
+
 def mesh_section(name: str, data: dict) -> Section:
     rows = [[method, num(m["seconds"], 1), num(m["faces"]), num(m["watertight"]),
              f"{100 * m['chamfer_fraction_of_diagonal']:.2f} %", num(m["fscore"]), f"{100 * m['volume_rel_error']:+.1f} %"]
@@ -362,6 +375,7 @@ SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
     "fidelity": ("Training views against the truth", fidelity_section),
     "batch": ("Batch throughput", batch_section),
     "thread_pools": ("Thread pools in a stage process", thread_pools_section),
+    "spin_count": ("How long idle OpenMP threads spin", spin_count_section),
     "batch_nodes": ("Batch throughput", batch_nodes_section),
     "other": ("Other results", other_section),
 }
