@@ -84,6 +84,21 @@ def _step(scene: dict, params: list[torch.Tensor], backend: str = "cpu", rasteri
     (img - scene["target"]).abs().mean().backward()
 
 
+def step_walls(gaussians: int, size: int, repeats: int) -> tuple[list[float], float]:
+    """Wall seconds of each of `repeats` steps on the bench scene (SH3, size²) after three warm-ups, and their CPU
+    seconds together: what the thread and spin benches time, each in a process whose pools they set up first."""
+    scene = bench_scene(gaussians, size, size)
+    params = [scene[k].clone().requires_grad_(True) for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
+    for _ in range(3):
+        _step(scene, params)
+    walls, cpu = [], time.process_time()
+    for _ in range(repeats):
+        started = time.perf_counter()
+        _step(scene, params)
+        walls.append(time.perf_counter() - started)
+    return walls, time.process_time() - cpu
+
+
 def _timed(fn, repeats: int) -> tuple[float, float]:
     """Median wall and CPU milliseconds of fn() after one warm-up call."""
     fn()

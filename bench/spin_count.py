@@ -33,21 +33,13 @@ sys.path.insert(0, str(ROOT))
 from station.scanfolder import atomic_write_json  # noqa: E402
 
 TIMER = """
-import json, sys, time
+import json, sys
 sys.path.insert(0, {bench!r})
-from raster import _step, bench_scene
+from raster import step_walls
 from station.ngs.raster import set_num_threads
 set_num_threads(2)
-scene = bench_scene({gaussians}, {size}, {size})
-params = [scene[k].clone().requires_grad_(True) for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
-for _ in range(3):
-    _step(scene, params)
-walls, cpu = [], time.process_time()
-for _ in range({repeats}):
-    started = time.perf_counter()
-    _step(scene, params)
-    walls.append(time.perf_counter() - started)
-print(json.dumps({{"walls": walls, "cpu_s": time.process_time() - cpu}}))
+walls, cpu_s = step_walls({gaussians}, {size}, {repeats})
+print(json.dumps({{"walls": walls, "cpu_s": cpu_s}}))
 """
 
 

@@ -18,7 +18,6 @@ import multiprocessing
 import os
 import statistics
 import sys
-import time
 from pathlib import Path
 
 from rich.console import Console
@@ -50,17 +49,9 @@ def _time_step(way: str, threads: int, gaussians: int, size: int, repeats: int, 
 
     (limit_threads if way == "limit_threads" else _peer_limit_threads)(threads)
     sys.path.insert(0, str(BENCH))
-    from raster import _step, bench_scene
+    from raster import step_walls
 
-    scene = bench_scene(gaussians, size, size)
-    params = [scene[k].clone().requires_grad_(True) for k in ("means", "log_scales", "quats", "opacity_logits", "sh")]
-    for _ in range(3):
-        _step(scene, params)
-    walls = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        _step(scene, params)
-        walls.append(time.perf_counter() - started)
+    walls, _ = step_walls(gaussians, size, repeats)
     result.send({"way": way, "threads": threads, "layer": numba.threading_layer(),
                  "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
                  "step_ms": round(1e3 * sorted(walls)[len(walls) // 2], 2),
