@@ -263,11 +263,11 @@ class _Rasterize(torch.autograd.Function):
         arrays, bg, bins, img, t_final, n_proc, taken, width, height, fast = ctx.state
         slots = _kernels.rasterize_bwd(*arrays, bg, bins[0], bins[1], taken, width, height, img, t_final, n_proc,
                                        g_img.contiguous().numpy(), g_alpha[..., 0].contiguous().numpy(), fast)
-        red = torch.from_numpy(_kernels.reduce_per_gaussian(slots, bins[1], arrays[0].shape[0]))  # [N, 6 + D]
-        d = slots.shape[1] - 6
+        g_means2d, g_conics, g_feats, g_opacities = (
+            torch.from_numpy(g) for g in _kernels.reduce_per_gaussian(slots, bins[1], arrays[0].shape[0]))
         g_bg = (g_img * torch.from_numpy(t_final)[..., None]).sum((0, 1)) if ctx.needs_input_grad[6] else None
         # radii, depths (order only), width, height get no gradient
-        return red[:, :2], red[:, 2:5], red[:, 5:5 + d], red[:, 5 + d], None, None, g_bg, None, None
+        return g_means2d, g_conics, g_feats, g_opacities, None, None, g_bg, None, None
 
 
 def _gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree, near_plane, far_plane,
