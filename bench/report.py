@@ -50,7 +50,7 @@ def num(value: object, digits: int = 3) -> str:
 
 
 def kind_of(data: dict) -> str:
-    if data.get("benchmark") in ("demo", "plans", "thread_pools", "spin_count"):
+    if data.get("benchmark") in ("demo", "plans", "thread_pools", "spin_count", "step_threads"):
         return data["benchmark"]
     if data.get("benchmark") == "raster" and "before" in data:
         return "raster_ab"
@@ -247,6 +247,22 @@ def spin_count_section(name: str, data: dict) -> Section:
     return lines, {}
 
 
+def step_threads_section(name: str, data: dict) -> Section:
+    rows = []
+    for scan, run in data["runs"].items():
+        one, pool = (run["policies"][p] for p in ("one thread", "whole pool"))
+        rows.append([scan, "x".join(map(str, run["view_size"])), f"{num(run['num_gaussians'])} + {num(run['num_infill'])}",
+                     num(run["steps"]), num(one["median_step_ms"], 1), num(pool["median_step_ms"], 1),
+                     num(run["pair_ratio_median"], 3), num(run["infill_build_step_s"], 2), num(run["held_out_psnr"], 2),
+                     num(run["held_out_sos"], 3)])
+    lines = [f"torch's ops in each training step on one thread (the trainer's rule); peer: {data['peer']}. Method: "
+             f"{data['method']}. Median step ms; the ratio is the median over neighbouring turns of one thread / whole "
+             f"pool. The infill build keeps the pool in both. 1-min load at the end: {data['load_1min_at_end']}.", ""]
+    lines += table(["scan", "final view", "Gaussians + infill", "steps", "one thread ms", "whole pool ms", "ratio",
+                    "infill build s", "held-out PSNR", "SOS"], rows)
+    return lines, {}
+
+
 def mesh_section(name: str, data: dict) -> Section:
     rows = [[method, num(m["seconds"], 1), num(m["faces"]), num(m["watertight"]),
              f"{100 * m['chamfer_fraction_of_diagonal']:.2f} %", num(m["fscore"]), f"{100 * m['volume_rel_error']:+.1f} %"]
@@ -376,6 +392,7 @@ SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
     "batch": ("Batch throughput", batch_section),
     "thread_pools": ("Thread pools in a stage process", thread_pools_section),
     "spin_count": ("How long idle OpenMP threads spin", spin_count_section),
+    "step_threads": ("torch's threads inside a training step", step_threads_section),
     "batch_nodes": ("Batch throughput", batch_nodes_section),
     "other": ("Other results", other_section),
 }

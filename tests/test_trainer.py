@@ -260,6 +260,35 @@ def test_ngs_phases_freeze_the_surface_then_the_noise_and_recolour_every_step(sc
         TINY.lr_means * trainer.scene.scene_scale * 0.01 ** (2 / (TINY.steps - ngs.freeze_step)))
 
 
+def test_a_steps_torch_ops_run_on_one_thread_but_the_infill_is_built_on_the_whole_pool(scan, tmp_path, monkeypatch):
+    import station.ngs.ngs_schedule as ngs_schedule
+    import station.ngs.trainer as trainer_module
+
+    seen = {"render": set(), "build": set()}
+    render, build = trainer_module.rasterization, ngs_schedule.build_infill
+
+    def counting_render(*args, **kwargs):
+        seen["render"].add(torch.get_num_threads())
+        return render(*args, **kwargs)
+
+    def counting_build(*args, **kwargs):
+        seen["build"].add(torch.get_num_threads())
+        return build(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "rasterization", counting_render)
+    monkeypatch.setattr(ngs_schedule, "build_infill", counting_build)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        trainer = Trainer(load_scene(scan[0]), TINY, tmp_path)
+        for step in range(trainer.ngs.build_step + 2):
+            trainer.train_step(step)
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert seen == {"render": {1, 2}, "build": {2}}
+
+
 def test_after_the_freeze_the_foreground_alpha_loss_judges_the_surface_not_the_opaque_noise(scan, tmp_path):
     runs = {}
     for on in (True, False):

@@ -68,9 +68,12 @@ class NGSPhases:
         start = self.freeze_step if (self.cfg.lr_reset and step >= self.freeze_step) else 0
         return 0.01 ** ((step - start) / max(1, self.total_steps - start))
 
+    def builds_infill(self, step: int) -> bool:
+        return step == self.build_step and self.infill is None
+
     def step_pre(self, step: int, surface: dict[str, torch.Tensor], cameras: list[Camera]) -> None:
         """Build the infill at `build`, freeze the noise at `freeze`, recolour the noise."""
-        if step == self.build_step and self.infill is None:
+        if self.builds_infill(step):
             self.infill = build_infill(surface, cameras, self.cfg.infill)
             logit = math.log(self.cfg.noise_start_opacity / (1 - self.cfg.noise_start_opacity))
             self._set_trainable(torch.full((len(self.infill),), logit, device=self.device))

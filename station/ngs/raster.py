@@ -10,6 +10,8 @@ every device and return their results on the input's device.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Literal
 
 import numba
@@ -34,6 +36,18 @@ def set_num_threads(threads: int) -> None:
         raise BadInputError(f"set_num_threads: threads must be >= 1, got {threads}")
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     torch.set_num_threads(threads)
+
+
+@contextmanager
+def torch_threads(threads: int) -> Iterator[None]:
+    """torch's pool at `threads` inside the block, as it was after. With passive waits (OMP_WAIT_POLICY) each
+    parallel torch op wakes a sleeping thread, which costs more than ops the size of a training step's gain."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _host(x: Tensor) -> np.ndarray:

@@ -24,7 +24,7 @@ from station.ngs.gaussians import Gaussians
 from station.ngs.infill import Camera
 from station.ngs.losses import LossConfig, MaskRegions, mask_regions, total_loss
 from station.ngs.ngs_schedule import NGSConfig, NGSPhases
-from station.ngs.raster import rasterization
+from station.ngs.raster import rasterization, torch_threads
 from station.ngs.resolution import ResolutionConfig, resolution_decision
 from station.ngs.sos import held_out_sos
 from station.ngs.stopping import BETWEEN_BLOCKS, ExtendConfig, early_finish_decision, extension_decision
@@ -187,7 +187,13 @@ class Trainer:
         return self.cfg.lr_means * self.scene.scene_scale * factor
 
     def train_step(self, step: int) -> dict[str, float]:
-        """One image, one Adam step; densification and NGS hooks around it."""
+        """One image, one Adam step; densification and NGS hooks around it. torch's ops run on one thread
+        (bench/step_threads.py): a step's are small. The step that builds the infill keeps the whole pool."""
+        building = bool(self.ngs and self.ngs.builds_infill(step))
+        with torch_threads(torch.get_num_threads() if building else 1):
+            return self._train_step(step)
+
+    def _train_step(self, step: int) -> dict[str, float]:
         check_finite(step, {f"parameter {k}": v for k, v in self.model.params.items()})
         views = self.train_views()
         index = int(torch.randint(len(views), (1,), generator=self.generator, device="cpu"))

@@ -1,0 +1,134 @@
+"""How many threads torch's own ops get inside a training step: one (the trainer's rule) against the whole pool.
+
+With OMP_WAIT_POLICY=PASSIVE every parallel torch op wakes a sleeping thread, and a training step is many
+small ops (activations, the concatenated noise, the losses, Adam). The peer is the step on torch's whole pool,
+as the trainer ran before. Both run in one training run, in turns of ten steps, so they see the same model
+sizes, views and machine; each turn's median step is paired with its neighbour's. The step that builds the
+infill keeps the pool in both and is reported apart. Error axis: both compute the same step (up to the
+order of torch's reductions), and the run's held-out PSNR and SOS at its end are given beside the times.
+
+    python bench/step_threads.py [--scan SCAN] [--dtu] [--rounds-of 10]
+
+Without --scan a simulated demo scan is shot and processed first (about two minutes). --dtu adds DTU scan65
+from ../shared/data/multiview, trained as bench/real.py trains it (fast preset, 1/2 size).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import statistics
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch and numba load their OpenMP runtimes
+
+import torch  # noqa: E402
+from rich.console import Console  # noqa: E402
+from rich.table import Table  # noqa: E402
+
+import station.ngs.trainer as trainer_module  # noqa: E402
+from machine import describe, summary  # noqa: E402
+from ngs import compile_kernels_elsewhere, shoot_and_process  # noqa: E402
+from real import DATASETS, import_real  # noqa: E402
+from station.ngs.dataset import load_scene  # noqa: E402
+from station.ngs.presets import make_config  # noqa: E402
+from station.ngs.raster import set_num_threads, torch_threads  # noqa: E402
+from station.scanfolder import atomic_write_json  # noqa: E402
+
+RESULTS = Path(__file__).parent / "results"
+POLICIES = ("one thread", "whole pool")  # this tree's rule, then the peer
+
+
+def timed_run(scan: Path, downscale: int, turn: int) -> dict:
+    """One training run with the policies in turns of `turn` steps -> per-policy step times and pair ratios."""
+    cfg = replace(make_config("ngs", "fast"), downscale=downscale)
+    scene = load_scene(scan, downscale=cfg.downscale, seed=cfg.seed)
+    pool = torch.get_num_threads()
+    current = {"policy": POLICIES[0]}
+
+    def policy_threads(threads: int):
+        return torch_threads(threads if current["policy"] == POLICIES[0] else pool)
+
+    with tempfile.TemporaryDirectory(prefix="step-threads-") as work, contextlib.ExitStack() as undo:
+        trainer = trainer_module.Trainer(scene, cfg, Path(work) / "model")
+        undo.callback(setattr, trainer_module, "torch_threads", trainer_module.torch_threads)
+        trainer_module.torch_threads = policy_threads
+        step_once, times, build_step = trainer.train_step, [], trainer.ngs.build_step
+
+        def train_step(step: int) -> dict:
+            block = step // turn
+            current["policy"] = POLICIES[(block + block // 2) % 2]  # ABBA: neither always goes first
+            started = time.perf_counter()
+            out = step_once(step)
+            times.append((step, current["policy"], time.perf_counter() - started))
+            return out
+
+        trainer.train_step = train_step
+        report = trainer.run()
+        held_out = trainer.held_out()
+    per_policy = {p: [t for s, q, t in times if q == p and s != build_step and s > 0] for p in POLICIES}
+    blocks: dict[int, tuple[str, list[float]]] = {}
+    for step, policy, seconds in times:
+        if step != build_step and step > 0:
+            blocks.setdefault(step // turn, (policy, []))[1].append(seconds)
+    ratios = []
+    keys = sorted(blocks)
+    for a, b in zip(keys[::2], keys[1::2]):
+        medians = {blocks[k][0]: statistics.median(blocks[k][1]) for k in (a, b)}
+        if len(medians) == 2:
+            ratios.append(medians[POLICIES[0]] / medians[POLICIES[1]])
+    build = next(t for s, _, t in times if s == build_step)
+    return {
+        "steps": report.steps, "train_seconds": report.seconds, "num_gaussians": report.num_gaussians,
+        "num_infill": report.num_infill, "view_size": [trainer.train_views()[0].width, trainer.train_views()[0].height],
+        "torch_pool": pool,
+        "policies": {p: {"steps": len(v), "median_step_ms": round(1e3 * statistics.median(v), 2),
+                         "mean_step_ms": round(1e3 * statistics.fmean(v), 2)} for p, v in per_policy.items()},
+        "pair_ratio_median": round(statistics.median(ratios), 3), "pairs": len(ratios),
+        "infill_build_step_s": round(build, 2),
+        "held_out_psnr": round(held_out["psnr"], 2),
+        "held_out_sos": None if held_out.get("sos") is None else round(held_out["sos"], 4),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scan", type=Path, help="a processed scan folder (default: shoot and process the demo's)")
+    parser.add_argument("--dtu", action="store_true", help="also DTU scan65 at 1/2 size, as bench/real.py")
+    parser.add_argument("--turn", type=int, default=10, help="steps each policy runs before the other")
+    parser.add_argument("--out", type=Path, default=RESULTS / "step_threads.json")
+    args = parser.parse_args()
+    set_num_threads(os.cpu_count() or 1)
+    compile_kernels_elsewhere()
+    runs = {}
+    with tempfile.TemporaryDirectory(prefix="step-threads-scan-") as work:
+        source = args.scan or shoot_and_process(Path(work), None, "320x240")
+        runs["simulated demo scan" if args.scan is None else str(args.scan)] = timed_run(source, 1, args.turn)
+        if args.dtu:
+            dtu = import_real("dtu_scan65", DATASETS["dtu_scan65"], Path(work))
+            runs["DTU scan65, 1/2 size"] = timed_run(dtu, 2, args.turn)
+    machine = describe()
+    result = {"benchmark": "step_threads", "machine": machine, "load_1min_at_end": round(os.getloadavg()[0], 2),
+              "method": f"one training run per scan, policies in ABBA turns of {args.turn} steps",
+              "peer": "the whole step on torch's whole pool, as the trainer ran before", "runs": runs}
+    atomic_write_json(args.out, result)
+    table = Table(title=f"torch threads in a training step ({summary(machine)})")
+    for column in ("scan", "view", "gaussians", "one thread ms", "whole pool ms", "ratio", "infill build s",
+                   "PSNR", "SOS"):
+        table.add_column(column)
+    for name, run in runs.items():
+        one, peer = (run["policies"][p]["median_step_ms"] for p in POLICIES)
+        table.add_row(name, "x".join(map(str, run["view_size"])), f"{run['num_gaussians']}+{run['num_infill']}",
+                      f"{one:.1f}", f"{peer:.1f}", f"{run['pair_ratio_median']:.3f}", f"{run['infill_build_step_s']}",
+                      f"{run['held_out_psnr']}", f"{run['held_out_sos']}")
+    Console().print(table)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
