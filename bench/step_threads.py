@@ -7,10 +7,11 @@ sizes, views and machine; each turn's median step is paired with its neighbour's
 infill keeps the pool in both and is reported apart. Error axis: both compute the same step (up to the
 order of torch's reductions), and the run's held-out PSNR and SOS at its end are given beside the times.
 
-    python bench/step_threads.py [--scan SCAN] [--dtu] [--rounds-of 10]
+    python bench/step_threads.py [--runs demo,dtu-half,dtu-full] [--scan SCAN] [--turn 10] [--out FILE]
 
-Without --scan a simulated demo scan is shot and processed first (about two minutes). --dtu adds DTU scan65
-from ../shared/data/multiview, trained as bench/real.py trains it (fast preset, 1/2 size).
+`demo` trains on a simulated demo scan, shot and processed first (about two minutes), or on --scan. `dtu-half`
+and `dtu-full` train DTU scan65 from ../shared/data/multiview as bench/real.py does (fast preset), at 1/2 and at
+full size (about 6 and 10 minutes).
 """
 
 from __future__ import annotations
@@ -71,18 +72,18 @@ def timed_run(scan: Path, downscale: int, turn: int) -> dict:
         trainer.train_step = train_step
         report = trainer.run()
         held_out = trainer.held_out()
-    per_policy = {p: [t for s, q, t in times if q == p and s != build_step and s > 0] for p in POLICIES}
+    build = next(t for s, _, t in times if s == build_step)
+    times = [(s, p, t) for s, p, t in times if s != build_step and s > 0]  # the first step pays one-off costs
+    per_policy = {p: [t for _, q, t in times if q == p] for p in POLICIES}
     blocks: dict[int, tuple[str, list[float]]] = {}
     for step, policy, seconds in times:
-        if step != build_step and step > 0:
-            blocks.setdefault(step // turn, (policy, []))[1].append(seconds)
+        blocks.setdefault(step // turn, (policy, []))[1].append(seconds)
     ratios = []
     keys = sorted(blocks)
     for a, b in zip(keys[::2], keys[1::2]):
         medians = {blocks[k][0]: statistics.median(blocks[k][1]) for k in (a, b)}
         if len(medians) == 2:
             ratios.append(medians[POLICIES[0]] / medians[POLICIES[1]])
-    build = next(t for s, _, t in times if s == build_step)
     return {
         "steps": report.steps, "train_seconds": report.seconds, "num_gaussians": report.num_gaussians,
         "num_infill": report.num_infill, "view_size": [trainer.train_views()[0].width, trainer.train_views()[0].height],
@@ -96,22 +97,32 @@ def timed_run(scan: Path, downscale: int, turn: int) -> dict:
     }
 
 
+RUNS = {"demo": ("simulated demo scan", 1), "dtu-half": ("DTU scan65, 1/2 size", 2),
+        "dtu-full": ("DTU scan65, full size", 1)}  # name -> (what the results call it, downscale)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scan", type=Path, help="a processed scan folder (default: shoot and process the demo's)")
-    parser.add_argument("--dtu", action="store_true", help="also DTU scan65 at 1/2 size, as bench/real.py")
+    parser.add_argument("--runs", default="demo", help=f"comma-separated, of {', '.join(RUNS)}")
+    parser.add_argument("--scan", type=Path, help="a processed scan folder for `demo` (default: shoot the demo's)")
     parser.add_argument("--turn", type=int, default=10, help="steps each policy runs before the other")
     parser.add_argument("--out", type=Path, default=RESULTS / "step_threads.json")
     args = parser.parse_args()
+    chosen = [name for name in args.runs.split(",") if name]
+    if unknown := [name for name in chosen if name not in RUNS]:
+        sys.exit(f"step_threads: unknown --runs {', '.join(unknown)} (known: {', '.join(RUNS)})")
     set_num_threads(os.cpu_count() or 1)
     compile_kernels_elsewhere()
     runs = {}
     with tempfile.TemporaryDirectory(prefix="step-threads-scan-") as work:
-        source = args.scan or shoot_and_process(Path(work), None, "320x240")
-        runs["simulated demo scan" if args.scan is None else str(args.scan)] = timed_run(source, 1, args.turn)
-        if args.dtu:
-            dtu = import_real("dtu_scan65", DATASETS["dtu_scan65"], Path(work))
-            runs["DTU scan65, 1/2 size"] = timed_run(dtu, 2, args.turn)
+        for name in chosen:
+            label, downscale = RUNS[name]
+            if name == "demo":
+                scan = args.scan or shoot_and_process(Path(work), None, "320x240")
+                label = label if args.scan is None else str(args.scan)
+            else:
+                scan = import_real("dtu_scan65", DATASETS["dtu_scan65"], Path(work))
+            runs[label] = timed_run(scan, downscale, args.turn)
     machine = describe()
     result = {"benchmark": "step_threads", "machine": machine, "load_1min_at_end": round(os.getloadavg()[0], 2),
               "method": f"one training run per scan, policies in ABBA turns of {args.turn} steps",
@@ -131,4 +142,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

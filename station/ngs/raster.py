@@ -41,7 +41,8 @@ def set_num_threads(threads: int) -> None:
 @contextmanager
 def torch_threads(threads: int) -> Iterator[None]:
     """torch's pool at `threads` inside the block, as it was after. With passive waits (OMP_WAIT_POLICY) each
-    parallel torch op wakes a sleeping thread, which costs more than ops the size of a training step's gain."""
+    parallel torch op wakes a sleeping thread, and for ops as small as a training step's the wake-up costs more
+    than the second thread saves."""
     before = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
