@@ -6,11 +6,12 @@
     python bench/raster.py --against REV   # step time of this tree against revision REV, in one process
 
 A step = projection + SH + binning + forward + L1 loss + backward to every parameter (no optimiser).
-Times are medians of wall-clock; CPU time (both threads) is reported beside them because a shared
-machine inflates wall time, and the step's fastest wall time too: a busy host only ever slows a step, here
-by up to 1.5x for seconds at a time. The step runs torch's ops on one thread, as the trainer does. The breakdown times each phase's kernels alone (forward and backward
-together), the trainer's Adam step beside them, and fits every phase's CPU time over the Gaussian-count
-sweep as fixed ms + us per Gaussian, so each part of the step's cost has an owner.
+A step runs torch's ops on one thread, as the trainer does. Times are medians of wall-clock; CPU time (both
+threads) is reported beside them because a shared machine inflates wall time, and the step's fastest wall
+time too: a busy host only ever slows a step, here by up to 1.5x for seconds at a time. The breakdown times
+each phase's kernels alone (forward and backward together), the trainer's Adam step beside them, and fits
+every phase's CPU time over the Gaussian-count sweep as fixed ms + us per Gaussian, so each part of the
+step's cost has an owner.
 """
 
 from __future__ import annotations
@@ -276,12 +277,14 @@ class _TreeStep:
         self.optimizers = trainer_optimizers(package, self.params)
 
     def step(self) -> None:
-        _step(self.scene, self.params, "cpu", self.rasterization)
+        with torch_threads(1):  # as the trainer runs a step
+            _step(self.scene, self.params, "cpu", self.rasterization)
 
     def train_step(self) -> None:
-        self.step()
-        for opt in self.optimizers:
-            opt.step()
+        with torch_threads(1):
+            _step(self.scene, self.params, "cpu", self.rasterization)
+            for opt in self.optimizers:
+                opt.step()
 
 
 def against(rev: str, rounds: int, out: Path) -> None:
@@ -352,8 +355,8 @@ def main() -> None:
     sizes = [128, 256, 512, 1024] if args.full else [128, 512]
     sweep = [(n, 256, 256, 3) for n in counts] + [(20_000, s, s, 3) for s in sizes]
     configs, seen = [], set()
-    print(f"{'gaussians':>9} {'size':>9} {'sh':>2} {'thr':>3} {'step ms':>8} {'best ms':>8} {'cpu ms':>8} {'fwd ms':>7} "
-          f"{'ref ms':>8} {'x ref':>6}")
+    print(f"{'gaussians':>9} {'size':>9} {'sh':>2} {'thr':>3} {'step ms':>8} {'best ms':>8} {'cpu ms':>8} "
+          f"{'fwd ms':>7} {'ref ms':>8} {'x ref':>6}")
     for n, w, h, d in headline + sweep:
         if (n, w, h, d) in seen:
             continue
@@ -363,8 +366,8 @@ def main() -> None:
         configs.append(row)
         ref_ms = "-" if row["reference_step_ms"] is None else f"{row['reference_step_ms']:.0f}"
         ratio = "-" if row["speedup_vs_reference"] is None else f"{row['speedup_vs_reference']:.0f}"
-        print(f"{n:>9} {w:>4}x{h:<4} {d:>2} {args.threads:>3} {row['step_ms']:>8.1f} {row['step_best_ms']:>8.1f} {row['step_cpu_ms']:>8.1f} "
-              f"{row['forward_ms']:>7.1f} {ref_ms:>8} {ratio:>6}", flush=True)
+        print(f"{n:>9} {w:>4}x{h:<4} {d:>2} {args.threads:>3} {row['step_ms']:>8.1f} {row['step_best_ms']:>8.1f} "
+              f"{row['step_cpu_ms']:>8.1f} {row['forward_ms']:>7.1f} {ref_ms:>8} {ratio:>6}", flush=True)
     short = {"checks": "chk", "projection": "proj", "sh": "sh", "binning_and_sort": "bin", "raster_forward": "fwd",
              "raster_backward": "bwd", "torch_glue": "glue", "optimizer": "adam"}
     print("\nCPU ms per phase (both threads; 'adam' is the optimiser step, outside 'step ms'):")
