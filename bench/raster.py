@@ -42,6 +42,7 @@ from station.ngs import _kernels, _project_kernels  # noqa: E402
 from station.ngs.conventions import rgb_to_sh  # noqa: E402
 from station.ngs.raster import _validate, rasterization, set_num_threads, torch_threads  # noqa: E402
 from station.ngs.raster_reference import camera_centres  # noqa: E402
+from station.ngs.trainer import STEP_TORCH_THREADS  # noqa: E402
 
 from machine import describe  # noqa: E402
 from revisions import unpack_as, working_tree  # noqa: E402
@@ -104,7 +105,11 @@ def step_walls(gaussians: int, size: int, repeats: int) -> tuple[list[float], fl
 def _timed(fn, repeats: int) -> tuple[float, float]:
     """Median wall and CPU milliseconds of fn() after one warm-up call."""
     walls, cpus = _samples(fn, repeats)
-    return walls[len(walls) // 2], cpus[len(cpus) // 2]
+    return _median(walls), _median(cpus)
+
+
+def _median(ordered: list[float]) -> float:
+    return ordered[len(ordered) // 2]
 
 
 def _samples(fn, repeats: int) -> tuple[list[float], list[float]]:
@@ -127,9 +132,9 @@ def measure(n: int, width: int, height: int, sh_degree: int, threads: int, repea
         with torch.no_grad():
             _render(scene, params, "cpu")
 
-    with torch_threads(1):  # as the trainer runs a step (Trainer.train_step)
+    with torch_threads(STEP_TORCH_THREADS):  # as the trainer runs a step
         walls, cpus = _samples(lambda: _step(scene, params), repeats)
-    step_ms, step_cpu_ms = walls[len(walls) // 2], cpus[len(cpus) // 2]
+    step_ms, step_cpu_ms = _median(walls), _median(cpus)
     forward_ms, _ = _timed(forward, repeats)
     parts = breakdown(scene, params, (step_ms, step_cpu_ms), repeats)
     reference_ms = None
@@ -277,12 +282,12 @@ class _TreeStep:
         self.optimizers = trainer_optimizers(package, self.params)
 
     def step(self) -> None:
-        with torch_threads(1):  # as the trainer runs a step
+        with torch_threads(STEP_TORCH_THREADS):  # as the trainer runs a step
             _step(self.scene, self.params, "cpu", self.rasterization)
 
     def train_step(self) -> None:
-        with torch_threads(1):
-            _step(self.scene, self.params, "cpu", self.rasterization)
+        with torch_threads(STEP_TORCH_THREADS):
+            self.step()
             for opt in self.optimizers:
                 opt.step()
 

@@ -38,7 +38,7 @@ from ngs import compile_kernels_elsewhere, shoot_and_process  # noqa: E402
 from real import DATASETS, import_real  # noqa: E402
 from station.ngs.dataset import load_scene  # noqa: E402
 from station.ngs.presets import make_config  # noqa: E402
-from station.ngs.raster import set_num_threads, torch_threads  # noqa: E402
+from station.ngs.raster import set_num_threads  # noqa: E402
 from station.scanfolder import atomic_write_json  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
@@ -50,28 +50,26 @@ def timed_run(scan: Path, downscale: int, turn: int) -> dict:
     cfg = replace(make_config("ngs", "fast"), downscale=downscale)
     scene = load_scene(scan, downscale=cfg.downscale, seed=cfg.seed)
     pool = torch.get_num_threads()
-    current = {"policy": POLICIES[0]}
-
-    def policy_threads(threads: int):
-        return torch_threads(threads if current["policy"] == POLICIES[0] else pool)
+    threads = {POLICIES[0]: trainer_module.STEP_TORCH_THREADS, POLICIES[1]: pool}
 
     with tempfile.TemporaryDirectory(prefix="step-threads-") as work, contextlib.ExitStack() as undo:
         trainer = trainer_module.Trainer(scene, cfg, Path(work) / "model")
-        undo.callback(setattr, trainer_module, "torch_threads", trainer_module.torch_threads)
-        trainer_module.torch_threads = policy_threads
+        undo.callback(setattr, trainer_module, "STEP_TORCH_THREADS", trainer_module.STEP_TORCH_THREADS)
         step_once, times, build_step = trainer.train_step, [], trainer.ngs.build_step
 
         def train_step(step: int) -> dict:
             block = step // turn
-            current["policy"] = POLICIES[(block + block // 2) % 2]  # ABBA: neither always goes first
+            policy = POLICIES[(block + block // 2) % 2]  # ABBA: neither always goes first
+            trainer_module.STEP_TORCH_THREADS = threads[policy]
             started = time.perf_counter()
             out = step_once(step)
-            times.append((step, current["policy"], time.perf_counter() - started))
+            times.append((step, policy, time.perf_counter() - started))
             return out
 
         trainer.train_step = train_step
         report = trainer.run()
         held_out = trainer.held_out()
+        view = trainer.train_views()[0]
     build = next(t for s, _, t in times if s == build_step)
     times = [(s, p, t) for s, p, t in times if s != build_step and s > 0]  # the first step pays one-off costs
     per_policy = {p: [t for _, q, t in times if q == p] for p in POLICIES}
@@ -86,7 +84,7 @@ def timed_run(scan: Path, downscale: int, turn: int) -> dict:
             ratios.append(medians[POLICIES[0]] / medians[POLICIES[1]])
     return {
         "steps": report.steps, "train_seconds": report.seconds, "num_gaussians": report.num_gaussians,
-        "num_infill": report.num_infill, "view_size": [trainer.train_views()[0].width, trainer.train_views()[0].height],
+        "num_infill": report.num_infill, "view_size": [view.width, view.height],
         "torch_pool": pool,
         "policies": {p: {"steps": len(v), "median_step_ms": round(1e3 * statistics.median(v), 2),
                          "mean_step_ms": round(1e3 * statistics.fmean(v), 2)} for p, v in per_policy.items()},

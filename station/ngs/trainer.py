@@ -33,6 +33,7 @@ from station.scanfolder import atomic_write_with
 
 Method = Literal["3dgs", "alpha", "ngs"]
 CHECKPOINT = "checkpoint.pt"
+STEP_TORCH_THREADS = 1  # torch's pool inside a training step (bench/step_threads.py): its ops are small
 log = logging.getLogger(__name__)
 
 
@@ -187,10 +188,10 @@ class Trainer:
         return self.cfg.lr_means * self.scene.scene_scale * factor
 
     def train_step(self, step: int) -> dict[str, float]:
-        """One image, one Adam step; densification and NGS hooks around it. torch's ops run on one thread
-        (bench/step_threads.py): a step's are small. The step that builds the infill keeps the whole pool."""
+        """One image, one Adam step; densification and NGS hooks around it. torch's ops run on
+        STEP_TORCH_THREADS, but for the step that builds the infill: it keeps the whole pool."""
         building = bool(self.ngs and self.ngs.builds_infill(step))
-        with torch_threads(torch.get_num_threads() if building else 1):
+        with torch_threads(torch.get_num_threads() if building else STEP_TORCH_THREADS):
             return self._train_step(step)
 
     def _train_step(self, step: int) -> dict[str, float]:
