@@ -138,13 +138,41 @@ def ray_run(tiny_shot, tmp_path_factory) -> dict:
         scans = copy_scans([tiny_shot(stone) for stone in STONES], root / "scans")
         queue = root / "queue.sqlite"
         assert batch("add", *scans, "--queue", queue).returncode == 0
-        result = batch("run", "--executor", "ray", "--workers", "2", *TINY_RUN, "--queue", queue, timeout=500)
-    return {"scans": scans, "queue": queue, "result": result}
+        runner = subprocess.Popen([*BATCH, "run", "--executor", "ray", "--workers", "2", *TINY_RUN, "--queue",
+                                   str(queue)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        niceness = _stage_niceness_while(runner, timeout=500)
+        stdout, stderr = runner.communicate()
+    return {"scans": scans, "queue": queue, "result": subprocess.CompletedProcess(runner.args, runner.returncode,
+                                                                                 stdout, stderr),
+            "stage_niceness": niceness}
+
+
+def _stage_niceness_while(runner: subprocess.Popen, timeout: float) -> set[int]:
+    """The niceness of every Ray worker seen running a stage (`ray::execute_stage`) until `runner` ends."""
+    seen: set[int] = set()
+    deadline = time.monotonic() + timeout
+    while runner.poll() is None:
+        if time.monotonic() > deadline:
+            runner.kill()
+            pytest.fail("the Ray batch did not finish in time")
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+                if (stat.parent / "cmdline").read_bytes().startswith(b"ray::execute_stage"):
+                    seen.add(int(fields[16]))  # field 19 of stat: nice
+            except (OSError, IndexError):
+                continue
+        time.sleep(0.5)
+    return seen
 
 
 def test_on_a_local_ray_instance_every_file_of_the_batch_verifies(ray_run):
     for scan in ray_run["scans"]:
         assert verify_scan(scan) == [], scan.name
+
+
+def test_ray_runs_the_stages_at_the_runners_own_priority_not_its_default_nice_15(ray_run):
+    assert ray_run["stage_niceness"] == {os.nice(0)}
 
 
 def test_all_four_scans_end_done_after_six_kills(chaos_run):

@@ -41,11 +41,13 @@ def shot(tiny_shot) -> list[Path]:
 
 @pytest.fixture(scope="module")
 def ray_env():
-    """Token auth on, with a fresh token, and Ray's files under a short private temp dir."""
+    """Token auth on, with a fresh token, Ray's files under a short private temp dir, and the workers at the
+    test's own priority (Ray's default nice 15 starves them on a busy machine), as an operator may set it."""
     from ray._raylet import AuthenticationTokenLoader, Config
 
     tmp = tempfile.mkdtemp(prefix="ray-", dir="/tmp")  # Ray's unix sockets live here: the path must be short
-    env = {"RAY_TMPDIR": tmp, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
+    env = {"RAY_TMPDIR": tmp, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32),
+           "RAY_worker_niceness": "0"}
     with pytest.MonkeyPatch.context() as patch:
         for name, value in env.items():
             patch.setenv(name, value)

@@ -42,6 +42,9 @@ POLL_SECONDS = 0.5
 START_SECONDS = 120.0  # connecting to (or starting) Ray
 PROBE_SECONDS = 60.0
 SHUTDOWN_SECONDS = 20.0
+# Ray starts its workers at nice 15 by default, so a local instance's stages starved behind any busy process
+# (5-10x slower than local stages on a loaded machine); 0 keeps them at the runner's own priority
+LOCAL_WORKER_NICENESS = 0
 # Ray's failures of the machinery under a stage: the stage is run again as it was, on another node
 LOST = ("NodeDiedError", "WorkerCrashedError", "LocalRayletDiedError", "ObjectLostError", "RayActorError",
         "TaskUnschedulableError", "RaySystemError")
@@ -257,7 +260,8 @@ def _driver_main(address: str | None, num_cpus: int | None, log_path: str, key: 
         if address:
             ray.init(address=address, log_to_driver=False)
         else:  # "local": a new instance, never a cluster that `ray start` left running on this machine
-            ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+            ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, log_to_driver=False,
+                     _system_config={"worker_niceness": LOCAL_WORKER_NICENESS})
         driver = _Driver(ray)
         resources = ray.cluster_resources()
     except Exception as exc:  # noqa: BLE001 - sent back whole: the runner turns it into a clear error
