@@ -194,7 +194,7 @@ def breakdown(scene: dict, params: list[torch.Tensor], step_times: tuple[float, 
 
     for p in params:
         p.grad = torch.zeros_like(p)
-    optimizers = [torch.optim.Adam([p], lr=1e-3, eps=1e-15, fused=True) for p in params]  # as station/ngs/trainer.py
+    optimizers = trainer_optimizers("station", params)
 
     def adam() -> None:
         for opt in optimizers:
@@ -286,8 +286,8 @@ class _TreeStep:
             _step(self.scene, self.params, "cpu", self.rasterization)
 
     def train_step(self) -> None:
+        self.step()
         with torch_threads(STEP_TORCH_THREADS):
-            self.step()
             for opt in self.optimizers:
                 opt.step()
 
