@@ -59,9 +59,12 @@ def test_a_stalled_runners_stage_stops_itself_and_the_runner_records_nothing_whe
         runner_a = subprocess.Popen(run, stdout=sink, stderr=sink, env=slow)
     store = JobStore(queue)
     job = store.get(scan)
-    helpers = set()
-    while runner_a.poll() is None and not any(e["stage"] == "train" for e in store.stage_events(job.id)):
-        helpers = _descendants(runner_a.pid)  # the forkserver and resource tracker, before the stage starts
+    helpers: set[int] = set()  # the forkserver and resource tracker: A's processes from before the stage
+    while runner_a.poll() is None:
+        before = _descendants(runner_a.pid)  # taken before the store is read, so it cannot hold the stage
+        if any(e["stage"] == "train" for e in store.stage_events(job.id)):
+            break
+        helpers = before
         time.sleep(0.02)
     deadline = time.monotonic() + 60
     while not (stage := _alive(_descendants(runner_a.pid) - helpers)) and time.monotonic() < deadline:
