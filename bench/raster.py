@@ -25,6 +25,7 @@ import importlib  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import resource  # noqa: E402
+import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -105,11 +106,7 @@ def step_walls(gaussians: int, size: int, repeats: int) -> tuple[list[float], fl
 def _timed(fn, repeats: int) -> tuple[float, float]:
     """Median wall and CPU milliseconds of fn() after one warm-up call."""
     walls, cpus = _samples(fn, repeats)
-    return _median(walls), _median(cpus)
-
-
-def _median(ordered: list[float]) -> float:
-    return ordered[len(ordered) // 2]
+    return statistics.median(walls), statistics.median(cpus)
 
 
 def _samples(fn, repeats: int) -> tuple[list[float], list[float]]:
@@ -134,7 +131,7 @@ def measure(n: int, width: int, height: int, sh_degree: int, threads: int, repea
 
     with torch_threads(STEP_TORCH_THREADS):  # as the trainer runs a step
         walls, cpus = _samples(lambda: _step(scene, params), repeats)
-    step_ms, step_cpu_ms = _median(walls), _median(cpus)
+    step_ms, step_cpu_ms = statistics.median(walls), statistics.median(cpus)
     forward_ms, _ = _timed(forward, repeats)
     parts = breakdown(scene, params, (step_ms, step_cpu_ms), repeats)
     reference_ms = None

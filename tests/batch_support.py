@@ -41,6 +41,18 @@ def one_ray_at_a_time() -> Iterator[None]:
         yield
 
 
+def process_ids() -> list[int]:
+    return [int(entry.name) for entry in Path("/proc").iterdir() if entry.name.isdigit()]
+
+
+def proc_stat(pid: int) -> list[str] | None:
+    """The fields of /proc/PID/stat after the command name (state first, parent second), or None once it is gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
 def shoot(out: Path, stone: str) -> Path:
     """A finished 2 x 8 scan of stone `stone` at 160x120 (plates included)."""
     run_sim_scan(out, stone, 2, 8, (160, 120), 0.01, lambda done, total, what: None)

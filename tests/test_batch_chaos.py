@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from batch_support import (BATCH, TINY_RUN, batch, copy_scans, events, one_ray_at_a_time, redone_stages, status,
-                           temp_files, verify_scan)
+from batch_support import (BATCH, TINY_RUN, batch, copy_scans, events, one_ray_at_a_time, proc_stat, process_ids,
+                           redone_stages, status, temp_files, verify_scan)
 from station.batch.store import JobStore
 
 pytestmark = pytest.mark.slow
@@ -154,14 +154,15 @@ def _stage_niceness_while(runner: subprocess.Popen, timeout: float) -> set[int]:
     while runner.poll() is None:
         if time.monotonic() > deadline:
             runner.kill()
+            runner.wait()
             pytest.fail("the Ray batch did not finish in time")
-        for stat in Path("/proc").glob("[0-9]*/stat"):
+        for pid in process_ids():
             try:
-                fields = stat.read_text().rsplit(")", 1)[1].split()
-                if (stat.parent / "cmdline").read_bytes().startswith(b"ray::execute_stage"):
-                    seen.add(int(fields[16]))  # field 19 of stat: nice
-            except (OSError, IndexError):
+                running_a_stage = Path(f"/proc/{pid}/cmdline").read_bytes().startswith(b"ray::execute_stage")
+            except OSError:
                 continue
+            if running_a_stage and (fields := proc_stat(pid)) is not None:
+                seen.add(int(fields[16]))  # field 19 of stat: nice
         time.sleep(0.5)
     return seen
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from batch_support import BATCH, batch, copy_scans, events, redone_stages, verify_scan
+from batch_support import BATCH, batch, copy_scans, events, proc_stat, process_ids, redone_stages, verify_scan
 from station.batch.store import JobStore
 
 pytestmark = pytest.mark.slow
@@ -26,12 +26,9 @@ STEP_SLEEP = 0.05  # runner A's 300 tiny steps then last over 15 s, well past it
 def _descendants(pid: int) -> set[int]:
     """Every live process below `pid`, from /proc."""
     parents: dict[int, list[int]] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        parents.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    for child in process_ids():
+        if (fields := proc_stat(child)) is not None:
+            parents.setdefault(int(fields[1]), []).append(child)
     found, todo = set(), [pid]
     while todo:
         for child in parents.get(todo.pop(), []):
@@ -41,8 +38,7 @@ def _descendants(pid: int) -> set[int]:
 
 
 def _alive(pids: set[int]) -> set[int]:
-    return {pid for pid in pids if Path(f"/proc/{pid}").exists() and
-            Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"}
+    return {pid for pid in pids if (fields := proc_stat(pid)) is not None and fields[0] != "Z"}
 
 
 def test_a_stalled_runners_stage_stops_itself_and_the_runner_records_nothing_when_it_wakes(tiny_shot, tmp_path):

@@ -42,8 +42,8 @@ POLL_SECONDS = 0.5
 START_SECONDS = 120.0  # connecting to (or starting) Ray
 PROBE_SECONDS = 60.0
 SHUTDOWN_SECONDS = 20.0
-# Ray starts its workers at nice 15 by default, so a local instance's stages starved behind any busy process
-# (5-10x slower than local stages on a loaded machine); 0 keeps them at the runner's own priority
+# Ray starts its workers at nice 15 by default, which starves the stages behind any busy process; 0 (relative)
+# keeps a local instance's stages at the runner's own priority, as the local executor's are
 LOCAL_WORKER_NICENESS = 0
 # Ray's failures of the machinery under a stage: the stage is run again as it was, on another node
 LOST = ("NodeDiedError", "WorkerCrashedError", "LocalRayletDiedError", "ObjectLostError", "RayActorError",
