@@ -211,26 +211,32 @@ def test_training_prefers_a_gpu_node_and_the_other_stages_keep_off_it():
     assert choose_nodes([Node("d" * 56, "10.0.0.4", 0, 0)], "export", {}, frozenset()) == []  # no CPU: never
 
 
-def test_a_node_that_cannot_see_the_scan_folder_gets_no_stage_and_is_named(ray_env, shot, tmp_path):
+@pytest.fixture(scope="module")
+def blind(ray_env, shot, tmp_path_factory) -> dict:
     """A worker node in its own mount namespace, with the scans' folder hidden under an empty tmpfs:
-    as a node without the shared storage mounted. The head has no CPU, so it is the only candidate."""
+    as a node without the shared storage mounted. The head has no CPU, so it is the only candidate.
+    The node is started as an operator's `ray start` is by default: its workers at Ray's nice 15."""
     from ray.cluster_utils import Cluster
 
+    tmp_path = tmp_path_factory.mktemp("blind")
     hidden = tmp_path / "scans"
     if subprocess.run(["unshare", "--mount", "true"], capture_output=True).returncode != 0:
         pytest.skip("unshare --mount is not permitted here (needs root or user namespaces)")
     scan = copy_scans(shot[:1], hidden)[0]
     head = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False})
+    head_id = head.head_node.node_id
     ray_start = Path(sys.executable).with_name("ray")
     blind_node = (f"mount -t tmpfs none {hidden} && exec {ray_start} start --address={head.address} --num-cpus=1 "
                   "--block --dashboard-agent-listen-port=0 --metrics-export-port=0 --disable-usage-stats")
+    node_env = {name: value for name, value in os.environ.items() if name != "RAY_worker_niceness"}
     with open(tmp_path / "node.log", "wb") as sink:
         node = subprocess.Popen(["unshare", "--mount", "--propagation", "private", "sh", "-c", blind_node],
-                                stdout=sink, stderr=sink, start_new_session=True)
+                                stdout=sink, stderr=sink, start_new_session=True, env=node_env)
     try:
         deadline = time.monotonic() + 120
         while sum(n["Alive"] for n in head.global_state.node_table()) < 2 and time.monotonic() < deadline:
             time.sleep(0.2)
+        node_ids = [n["NodeID"] for n in head.global_state.node_table() if n["Alive"]]
         queue = tmp_path / "queue.sqlite"
         assert batch("add", scan, "--queue", queue).returncode == 0
         result = batch("run", *RUN, "--ray-address", head.address, "--queue", queue, env=ray_env)
@@ -238,8 +244,25 @@ def test_a_node_that_cannot_see_the_scan_folder_gets_no_stage_and_is_named(ray_e
         os.killpg(node.pid, signal.SIGKILL)
         node.wait()
         head.shutdown()
-    job = status(queue)[scan.name]
+    blind_id = next(i for i in node_ids if i != head_id)
+    return {"scan": scan, "queue": queue, "result": result, "node": blind_id[:12]}
+
+
+def test_a_node_that_cannot_see_the_scan_folder_gets_no_stage_and_is_named(blind):
+    scan, result = blind["scan"], blind["result"]
+    job = status(blind["queue"])[scan.name]
     assert job["state"] == "parked" and job["stage"] == "process", result.stderr[-3000:]
     assert "no node of the Ray cluster sees this scan folder" in job["reason"] and "cannot see it" in job["reason"]
     assert "parked" in result.stderr and "cannot see it" in result.stderr  # and the runner's log says so at once
     assert not (scan / "images").exists()  # no stage ran anywhere
+
+
+def test_a_node_whose_workers_run_at_rays_default_nice_15_is_named_once_with_the_fix(blind):
+    warnings = [line for line in blind["result"].stderr.splitlines() if "runs its Ray workers at nice" in line]
+    assert len(warnings) == 1, blind["result"].stderr[-3000:]
+    assert blind["node"] in warnings[0] and "at nice 15, this runner at nice 0" in warnings[0]
+    assert "RAY_worker_niceness=0" in warnings[0]
+
+
+def test_nodes_started_at_the_runners_priority_draw_no_niceness_warning(clean):
+    assert "runs its Ray workers at nice" not in clean["stderr"]

@@ -5,7 +5,9 @@ there; Ray runs the stage on the node this module picks: stages spread over the 
 one with the fewest of our stages first), training goes to a node with a GPU when there is
 one, and the other stages keep off GPU nodes when they can. Before a stage is sent to a node,
 a zero-CPU probe task checks that the node sees the scan folder (shared storage, same path,
-same scan.json); a node that does not is named and skipped. Ray never retries a task itself
+same scan.json); a node that does not is named and skipped. The same probe reads the niceness
+Ray runs the node's workers at, and the runner warns once about a node whose stages would run
+below its own priority (Ray's default is nice 15). Ray never retries a task itself
 (`max_retries=0`): retries are the runner's decision, and Ray's exception types tell it which
 kind (`lost`: the node, its raylet or the worker under the stage failed; anything the stage
 itself met comes back as its own Outcome).
@@ -84,11 +86,23 @@ def choose_nodes(nodes: list[Node], stage: str, busy: dict[str, int], avoid: fro
 
 
 def scan_fingerprint(scan: str) -> str | None:
-    """sha256 of the scan's scan.json as this machine sees it (run on a node by the probe task)."""
+    """sha256 of the scan's scan.json as this machine sees it."""
     try:
         return sha256_file(ScanFolder(scan).scan_json)
     except OSError:
         return None
+
+
+def probe_node(scan: str) -> tuple[str | None, int]:
+    """Run on a node by the probe task: the scan's fingerprint there, and the niceness of the node's Ray workers."""
+    return scan_fingerprint(scan), os.nice(0)
+
+
+@dataclass
+class Placement:
+    node: Node | None
+    refused: list[str]  # nodes that do not see the scan, and why
+    warnings: list[str]  # for the operator, once per node
 
 
 def enable_token_auth() -> None:
@@ -109,25 +123,32 @@ class _Driver:
 
         self.ray, self.affinity = ray, NodeAffinitySchedulingStrategy
         self.task = ray.remote(max_retries=0)(execute_stage)
-        self.probe = ray.remote(max_retries=0, num_cpus=0)(scan_fingerprint)
+        self.probe = ray.remote(max_retries=0, num_cpus=0)(probe_node)
+        self.own_niceness = os.nice(0)
         self.lock = threading.Lock()
         self.busy: dict[str, int] = {}
         self.lost_on: set[str] = set()  # labels of nodes some stage was lost on, until a stage ends well there
         self.seen: set[tuple[str, str]] = set()  # (node id, scan) pairs whose probe matched
+        self.niceness_checked: set[str] = set()  # node ids
 
     def nodes(self) -> list[Node]:
         return [Node(n["NodeID"], n["NodeManagerAddress"], n["Resources"].get("CPU", 0), n["Resources"].get("GPU", 0))
                 for n in self.ray.nodes() if n["Alive"]]
 
-    def _sees(self, node: Node, scan: str, expected: str | None) -> str | None:
-        """None when the node sees the scan folder, else why not."""
+    def _sees(self, node: Node, scan: str, expected: str | None, warnings: list[str]) -> str | None:
+        """None when the node sees the scan folder, else why not; a warning about the node's niceness, once."""
         if (node.id, scan) in self.seen:
             return None
         ref = self.probe.options(scheduling_strategy=self.affinity(node.id, soft=False)).remote(scan)
         try:
-            found = self.ray.get(ref, timeout=PROBE_SECONDS)
+            found, niceness = self.ray.get(ref, timeout=PROBE_SECONDS)
         except self.ray.exceptions.RayError as exc:
             return f"did not answer ({type(exc).__name__}: {_last_line(exc)})"
+        with self.lock:
+            first_look = node.id not in self.niceness_checked
+            self.niceness_checked.add(node.id)
+        if first_look and niceness > self.own_niceness:
+            warnings.append(_starved(node, niceness, self.own_niceness))
         if found is None:
             return "cannot see it"
         if found != expected:
@@ -135,26 +156,28 @@ class _Driver:
         self.seen.add((node.id, scan))
         return None
 
-    def place(self, call: StageCall, avoid: frozenset[str]) -> tuple[Node | None, list[str]]:
-        """The node for this stage (reserved), and the nodes refused for not seeing the scan.
+    def place(self, call: StageCall, avoid: frozenset[str]) -> Placement:
+        """The node for this stage (reserved), the nodes refused for not seeing the scan, and warnings.
 
         Every stage puts the nodes any stage was lost on last: Ray reports a killed node alive for
         seconds after its stages fail, and a stage pinned to it then is lost as well."""
-        expected, refused, tried = scan_fingerprint(call.scan), [], set()
+        expected, tried, placement = scan_fingerprint(call.scan), set(), Placement(None, [], [])
         while True:
             with self.lock:  # choose and reserve at once: slots placing together spread over the nodes
                 order = [n for n in choose_nodes(self.nodes(), call.stage, self.busy, avoid | self.lost_on)
                          if n.id not in tried]
                 if not order:
-                    return None, refused
+                    return placement
                 node = order[0]
                 self.busy[node.id] = self.busy.get(node.id, 0) + 1
             tried.add(node.id)
-            why = self._sees(node, call.scan, expected) if expected else "cannot be checked: the runner cannot read scan.json"
+            why = (self._sees(node, call.scan, expected, placement.warnings) if expected
+                   else "cannot be checked: the runner cannot read scan.json")
             if why is None:
-                return node, refused
+                placement.node = node
+                return placement
             self.release(node)
-            refused.append(f"{node.label} {why}")
+            placement.refused.append(f"{node.label} {why}")
 
     def release(self, node: Node) -> None:
         with self.lock:
@@ -193,12 +216,15 @@ class _Driver:
         with conn:
             call, attempt = conn.recv()
             store = attempt_store(attempt)
-            node, refused = self.place(call, attempt.avoid)
+            placement = self.place(call, attempt.avoid)
+            node = placement.node
+            for warning in placement.warnings:
+                conn.send(("warning", warning))
             if node is None:
-                conn.send(("outcome", Outcome("bad_input", _unseen(call.scan, refused))))
+                conn.send(("outcome", Outcome("bad_input", _unseen(call.scan, placement.refused))))
                 return
             try:
-                conn.send(("placed", node.label, refused))
+                conn.send(("placed", node.label, placement.refused))
                 ref = self.submit(call, node)
                 while True:
                     ready, _ = self.ray.wait([ref], timeout=POLL_SECONDS)
@@ -234,6 +260,12 @@ def _unseen(scan: str, refused: list[str]) -> str:
     asked = "; ".join(refused) or "no node with a CPU is alive"
     return (f"{scan}: no node of the Ray cluster sees this scan folder ({asked}); scan folders must be on "
             "storage every node mounts at the same path (see docs/batch-ray.md)")
+
+
+def _starved(node: Node, niceness: int, own: int) -> str:
+    return (f"node {node.label} runs its Ray workers at nice {niceness}, this runner at nice {own}: stages there get "
+            "little CPU beside any other busy process. Start Ray on that node with RAY_worker_niceness=0 in its "
+            "environment (docs/batch-ray.md)")
 
 
 def _exit_with_parent(control: Connection, ray: Any) -> None:
@@ -322,6 +354,9 @@ class RayExecutor:
                         message = conn.recv()
                         if message[0] == "outcome":
                             return message[1]
+                        if message[0] == "warning":
+                            log.warning("%s", message[1])
+                            continue
                         _, node, refused = message
                         for line in refused:
                             log.warning("%s: node %s; not sending stages there", Path(call.scan).name, line)
