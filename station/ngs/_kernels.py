@@ -3,7 +3,7 @@
 Layout follows gsplat: every (tile, Gaussian) intersection sits in a per-tile, depth-sorted list. Tiles
 run in parallel (prange). A tile's pixels are stored in strips, each row-major, so the rows of the strips a
 Gaussian reaches are one contiguous run; the loop over them is branch-free (0/1 masks, not selects) and LLVM
-vectorises it. `fast=True` uses a polynomial exp (rel. error ~6e-7, float32) because math.exp blocks
+vectorises it. `fast=True` uses a polynomial exp (rel. error ~7e-7, float32) because math.exp blocks
 vectorisation; float64 callers (gradcheck) pass fast=False for math.exp. The forward records the rows of
 each strip an intersection composited in; the backward walks only those, gives every intersection its own
 gradient slot and reduces them per Gaussian in a fixed order: no atomics, deterministic.
@@ -38,15 +38,15 @@ ZERO, HALF, ONE = F(0.0), F(0.5), F(1.0)
 ALPHA_MAX = F(conventions.ALPHA_MAX)
 ALPHA_MIN = F(conventions.ALPHA_MIN)
 T_STOP = F(conventions.T_STOP)
-LOG2E = F(1.4426950408889634)
-LN2 = F(0.6931471805599453)
-EXP_FLOOR = F(-30.0)
+LOG2E = 1.4426950408889634
+LOG2_FLOOR = F(-30.0 * LOG2E)  # exp(-30): far below any alpha that composites
 BIG = 1e30
-# sqrt(2) exp(f) on |f| <= ln(2) / 2, degree 6: a relative-error fit (reweighted least squares on Chebyshev nodes),
-# max error 1.4e-7 and mean -2e-8 in float32 Horner, as the degree-7 Taylor series times sqrt(2) it replaced with
-# two operations a pixel fewer
-POLY = tuple(F(c) for c in (1.4142135381698608, 1.4142136573791504, 0.7071066498756409, 0.23569877445697784,
-                            0.05892777070403099, 0.011843778192996979, 0.001956826774403453))
+# 2 ** u on [0, 1), degree 5: a relative-error fit (reweighted least squares on Chebyshev nodes), max error 1.9e-7
+# in float32 Horner, its mean held at -3.4e-8: float32 log2(e) is 1.3e-8 low, which raises exp(-sigma) by 1.3e-8 per
+# unit of sigma, and the two cancel over the sigma where alpha can reach 1/255. Fitting 2 ** u itself, not sqrt(2)
+# exp(f) on a centred range, saves the range's shift and scale, and a degree, at the same error
+POLY = tuple(F(c) for c in (0.9999998807907104, 0.6931539177894592, 0.2401484251022339, 0.05583389475941658,
+                            0.008987758308649063, 0.001875926274806261))
 RGB = 3  # feature channels the compositing loops carry themselves; any others get a loop each
 
 
@@ -331,16 +331,18 @@ def _float32_from_bits(typingctx, bits):
 def _alphas(mx, my, ca, cb, cc, op, px, py, alpha, expo, fast, p0, p1):
     """Alpha and exp(-sigma) of one Gaussian over a tile's pixels [p0, p1); sigma < 0 gives alpha 0."""
     if fast:
+        # the conic scaled once so that the quadratic form is log2 exp(-sigma) itself
+        qa, qb, qc = F(-0.5 * LOG2E) * ca, F(-LOG2E) * cb, F(-0.5 * LOG2E) * cc
         for p in range(p0, p1):
             dx = mx - px[p]
             dy = my - py[p]
-            sig = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-            y = max(min(-sig, ZERO), EXP_FLOOR) * LOG2E
-            kf = np.floor(y)
-            f = (y - kf - HALF) * LN2
-            poly = POLY[0] + f * (POLY[1] + f * (POLY[2] + f * (POLY[3] + f * (POLY[4] + f * (POLY[5] + f * POLY[6])))))
+            y = qa * dx * dx + qc * dy * dy + qb * dx * dy
+            yc = max(min(y, ZERO), LOG2_FLOOR)
+            kf = np.floor(yc)
+            u = yc - kf
+            poly = POLY[0] + u * (POLY[1] + u * (POLY[2] + u * (POLY[3] + u * (POLY[4] + u * POLY[5]))))
             two_k = _float32_from_bits(np.int32((np.int32(kf) + np.int32(127)) << np.int32(23)))
-            expo[p] = poly * two_k if sig >= ZERO else ZERO
+            expo[p] = poly * two_k if y <= ZERO else ZERO
             alpha[p] = min(ALPHA_MAX, op * expo[p])
     else:
         for p in range(p0, p1):
@@ -369,17 +371,18 @@ def _tile_pixels(t, tw, width, height, dtype):
 
 
 @njit(cache=True, _nrt=False)
-def _live_rows(live, rows):
-    """Per strip, the rows [rows[s, 0], rows[s, 1]) from the first to the last holding a live pixel (empty: none);
-    rows outside are finished, so compositing skips them exactly. Returns whether any strip is live."""
+def _live_rows(state, live, rows):
+    """Per strip, the rows [rows[s, 0], rows[s, 1]) from the first to the last holding a live pixel (its `state` is
+    `live`; empty: none); rows outside are finished, so compositing skips them exactly. Returns whether any strip is
+    live."""
     any_live = False
     for s in range(STRIPS):
         r0, r1 = TILE, 0
         for r in range(TILE):
-            v = ZERO
+            v = 0
             for q in range(STRIP):
-                v += live[s * STRIP_PIX + r * STRIP + q]
-            if v > ZERO:
+                v += state[s * STRIP_PIX + r * STRIP + q] == live
+            if v > 0:
                 r0 = min(r0, r)
                 r1 = r + 1
         rows[s, 0], rows[s, 1] = r0, max(r1, r0)
@@ -423,16 +426,16 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
         x0 = (t % tw) * TILE
         y0 = (t // tw) * TILE
         T = np.ones(TILE_PIX, dt)
-        live = np.empty(TILE_PIX, dt)
-        stop_at = np.full(TILE_PIX, end - start, np.int32)
+        never = np.int32(end - start)
+        stop_at = np.empty(TILE_PIX, np.int32)  # where each pixel stopped; `never` while it composites (is live)
         acc = np.zeros((d_ch, TILE_PIX), dt)
         alpha = np.empty(TILE_PIX, dt)
         expo = np.empty(TILE_PIX, dt)
         w = np.empty(TILE_PIX, dt)
         for p in range(TILE_PIX):
-            live[p] = 1.0 if inside[p] else 0.0
+            stop_at[p] = never if inside[p] else np.int32(-1)  # outside the image: stopped before it starts
         rows = np.empty((STRIPS, 2), np.int64)  # per strip, the rows that still hold a live pixel
-        _live_rows(live, rows)
+        _live_rows(stop_at, never, rows)
         for k in range(end - start):
             g = isect_gid[start + k]
             r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
@@ -446,13 +449,13 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
                 for p in range(p0, p1):
                     a = alpha[p]
                     t = T[p]
-                    valid = np.float32(a >= ALPHA_MIN) * live[p]      # 0/1 masks, not branches: they vectorise
-                    take = valid * np.float32(t * (ONE - a) > T_STOP)
-                    wp = a * t * take
+                    at = a * t
+                    valid = np.float32(a >= ALPHA_MIN) * np.float32(stop_at[p] == never)  # 0/1 masks: they vectorise
+                    take = valid * np.float32(t - at > T_STOP)        # t (1 - a), as t - a t: one product fewer
+                    wp = at * take
                     w[p] = wp
-                    T[p] = t * (ONE - a * take)
-                    live[p] -= valid - take                             # valid, not taken: the pixel stops here
-                    stop_at[p] = k32 if valid > take else stop_at[p]
+                    T[p] = t - wp
+                    stop_at[p] = k32 if valid > take else stop_at[p]  # valid, not taken: the pixel stops here
                     q = np.int32(p)
                     first = min(first, q if take > ZERO else I32_MAX)
                     last = max(last, q if take > ZERO else np.int32(-1))
@@ -464,7 +467,7 @@ def rasterize_fwd(means2d, conics, colors, opacities, tile_offsets, isect_gid, e
                     c = colors[g, d]
                     for p in range(p0, p1):
                         acc[d, p] += c * w[p]
-            if k % 8 == 7 and not _live_rows(live, rows):
+            if k % 8 == 7 and not _live_rows(stop_at, never, rows):
                 break
         for p in range(TILE_PIX):
             if inside[p]:
@@ -503,7 +506,7 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
             if inside[p]:
                 t_level[p] = ONE - alpha_level[int(py[p]), int(px[p])]
         rows = np.empty((STRIPS, 2), np.int64)
-        _live_rows(live, rows)
+        _live_rows(live, ONE, rows)
         for k in range(end - start):
             g = isect_gid[start + k]
             r0, r1, s0, s1 = _reach(means2d, extents, g, x0, y0)
@@ -515,14 +518,15 @@ def median_depth_fwd(means2d, conics, opacities, depths, tile_offsets, isect_gid
                 for p in range(p0, p1):
                     a = alpha[p]
                     t = T[p]
-                    next_t = t * (ONE - a)
+                    at = a * t
+                    next_t = t - at                                    # as rasterize_fwd computes it
                     valid = np.float32(a >= ALPHA_MIN) * live[p]       # 0/1 masks, as in rasterize_fwd
                     take = valid * np.float32(next_t > T_STOP)
                     crossed = take * np.float32(next_t <= t_level[p]) * np.float32(t > t_level[p])
                     median[p] = z if crossed > ZERO else median[p]
-                    T[p] = t * (ONE - a * take)
+                    T[p] = t - at * take
                     live[p] = ZERO if (valid > take) or T[p] <= t_level[p] else live[p]
-            if k % 8 == 7 and not _live_rows(live, rows):
+            if k % 8 == 7 and not _live_rows(live, ONE, rows):
                 break
         for p in range(TILE_PIX):
             if inside[p]:
@@ -549,7 +553,7 @@ def _taken_span(taken, i, s):
 
 
 @njit(fastmath=True, cache=True, _nrt=False, error_model="numpy", pipeline_class=NoAlias)
-def _bwd_tile(start, kmax, means2d, conics, colors, opacities, isect_gid, taken, slots, px, py, T, tn, limit, ga, go,
+def _bwd_tile(start, kmax, means2d, conics, colors, opacities, isect_gid, taken, slots, px, py, T, limit, ga_tn, go,
               rest, alpha, expo, w, g_col, fast):
     """The backward of one tile's first `kmax` intersections into their `slots` rows, on the tile's per-pixel
     state. Its own function so that its arrays are `noalias`: in the prange body LLVM checks them for overlap
@@ -587,16 +591,17 @@ def _bwd_tile(start, kmax, means2d, conics, colors, opacities, isect_gid, taken,
                 t = T[p]
                 take = np.float32(a >= ALPHA_MIN) * np.float32(k32 < limit[p])  # a 0/1 mask: it vectorises
                 inv = take / (ONE - a)
-                wp = a * t * take
+                t_take = t * take
+                wp = a * t_take
                 w[p] = wp
                 g_red += go[0, p] * wp
                 g_green += go[1, p] * wp
                 g_blue += go[2, p] * wp
-                T[p] = t * (ONE - a * take)
+                T[p] = t - wp                                          # as the forward's
                 gc = go[0, p] * red + go[1, p] * green + go[2, p] * blue + g_col[p]
                 rest[p] -= wp * gc
-                unclamped = np.float32(op * expo[p] < ALPHA_MAX)     # no gradient through the clamp
-                gd = (ga[p] * tn[p] * inv + t * take * gc - inv * rest[p]) * unclamped
+                unclamped = np.float32(a < ALPHA_MAX)                  # no gradient through the clamp
+                gd = (inv * (ga_tn[p] - rest[p]) + t_take * gc) * unclamped
                 g_op += gd * expo[p]
                 g_sig = gd * a                                         # minus d loss / d sigma
                 dx = mx - px[p]
@@ -644,9 +649,8 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
                 slots[i, q] = 0.0
         px, py, inside = _tile_pixels(t, tw, width, height, dt)
         T = np.ones(TILE_PIX, dt)
-        tn = np.zeros(TILE_PIX, dt)
         limit = np.zeros(TILE_PIX, np.int32)
-        ga = np.zeros(TILE_PIX, dt)
+        ga_tn = np.zeros(TILE_PIX, dt)  # d loss / d alpha times T_final: the alpha loss's share of each pixel's term
         go = np.zeros((d_ch, TILE_PIX), dt)
         rest = np.zeros(TILE_PIX, dt)  # sum over channels of d loss / d colour times what is left behind the list
         alpha = np.empty(TILE_PIX, dt)
@@ -658,14 +662,13 @@ def rasterize_bwd(means2d, conics, colors, opacities, background, tile_offsets, 
             if inside[p]:
                 x = int(px[p])
                 y = int(py[p])
-                tn[p] = t_final[y, x]
                 limit[p] = n_proc[y, x]
                 kmax = max(kmax, n_proc[y, x])
-                ga[p] = g_alpha[y, x]
+                ga_tn[p] = g_alpha[y, x] * t_final[y, x]
                 for d in range(d_ch):
                     go[d, p] = g_feats[y, x, d]
                     rest[p] += g_feats[y, x, d] * (feats[y, x, d] + t_final[y, x] * background[d])
-        _bwd_tile(start, kmax, means2d, conics, colors, opacities, isect_gid, taken, slots, px, py, T, tn, limit, ga,
+        _bwd_tile(start, kmax, means2d, conics, colors, opacities, isect_gid, taken, slots, px, py, T, limit, ga_tn,
                   go, rest, alpha, expo, w, g_col, fast)
     return slots
 

@@ -6,7 +6,7 @@ backward writes per-(camera, Gaussian) pose partials and sums them in a fixed or
 
 Laid out to compile fast on a fresh install: numba's IR-level `inline="always"` types a helper afresh at every
 call site, and the parfor passes walk all that is inlined into a prange body, twice. So each prange body only
-calls a chunk function, and helpers are `forceinline` (typed once, inlined by LLVM). Chunk functions and helpers
+calls chunk functions, and helpers are `forceinline` (typed once, inlined by LLVM). Chunk functions and helpers
 run without NRT (`_nrt=False`; none allocates): with it, every array argument of a call costs an atomic
 reference-count pair per call.
 """
@@ -127,37 +127,95 @@ def _jacobian(x, y, z, fx, fy, cx, cy, width, height):
 CHUNK = 64
 
 
-@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far,
-                 means2d, conics, depths, radii, colors, Rw, s0, s1, s2, covc, s4, basis):
-    """Project Gaussian g into camera c, writing every output slot; s0..s4 are [3, 3] scratch."""
+@njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=NoAlias)
+def _project_chunk(c, start, means, quats, scales, viewmats, Ks, width, height, near, far, means2d, conics, depths,
+                   radii, Rw, u_all, v_all, con_a, con_b, con_c):
+    """Project Gaussians start .. start + CHUNK - 1 (fewer at the end) into camera c, writing every output slot.
+
+    The geometry is one loop of straight-line code, which LLVM vectorises across Gaussians: no scratch arrays, no
+    branches (selects), and five [N] arrays for means2d and conics, whose [C, N, k] rows it would have to scatter
+    into (and rows of one [5, N] array might overlap, for all LLVM knows); they are copied over after. A Gaussian
+    on the camera plane (z = 0) gets zeros."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
-    x = Rw[0, 0] * means[g, 0] + Rw[0, 1] * means[g, 1] + Rw[0, 2] * means[g, 2] + viewmats[c, 0, 3]
-    y = Rw[1, 0] * means[g, 0] + Rw[1, 1] * means[g, 1] + Rw[1, 2] * means[g, 2] + viewmats[c, 1, 3]
-    z = Rw[2, 0] * means[g, 0] + Rw[2, 1] * means[g, 1] + Rw[2, 2] * means[g, 2] + viewmats[c, 2, 3]
-    depths[c, g] = z
-    if z == 0.0:
-        return
-    means2d[c, g, 0] = fx * x / z + cx
-    means2d[c, g, 1] = fy * y / z + cy
-    _camera_cov(quats, scales, g, Rw, s0, s1, s2, covc, s4)
-    j00, j02, j11, j12, _, _, _, _ = _jacobian(x, y, z, fx, fy, cx, cy, width, height)
-    a = j00 * j00 * covc[0, 0] + 2 * j00 * j02 * covc[0, 2] + j02 * j02 * covc[2, 2] + EPS2D
-    b = j00 * j11 * covc[0, 1] + j00 * j12 * covc[0, 2] + j02 * j11 * covc[2, 1] + j02 * j12 * covc[2, 2]
-    cc = j11 * j11 * covc[1, 1] + 2 * j11 * j12 * covc[1, 2] + j12 * j12 * covc[2, 2] + EPS2D
-    det = a * cc - b * b
-    det_safe = max(det, 1e-10)
-    conics[c, g, 0] = cc / det_safe
-    conics[c, g, 1] = -b / det_safe
-    conics[c, g, 2] = a / det_safe
-    half = 0.5 * (a + cc)
-    v1 = half + math.sqrt(max(half * half - det, 0.01))
-    radius = math.ceil(3.0 * math.sqrt(max(v1, 0.0)))
-    u, v = means2d[c, g, 0], means2d[c, g, 1]
-    visible = det > 0 and near < z < far
-    inside = u + radius > 0 and u - radius < width and v + radius > 0 and v - radius < height
-    radii[c, g] = int(radius) if visible and inside else 0
-    if sh_degree >= 0:
+    r00, r01, r02 = Rw[0, 0], Rw[0, 1], Rw[0, 2]
+    r10, r11, r12 = Rw[1, 0], Rw[1, 1], Rw[1, 2]
+    r20, r21, r22 = Rw[2, 0], Rw[2, 1], Rw[2, 2]
+    tx, ty, tz = viewmats[c, 0, 3], viewmats[c, 1, 3], viewmats[c, 2, 3]
+    lxp = (width - cx) / fx + 0.3 * (0.5 * width / fx)  # `_jacobian`'s frustum clamp
+    lxn = cx / fx + 0.3 * (0.5 * width / fx)
+    lyp = (height - cy) / fy + 0.3 * (0.5 * height / fy)
+    lyn = cy / fy + 0.3 * (0.5 * height / fy)
+    stop = min(means.shape[0], start + CHUNK)
+    for g in range(start, stop):
+        px, py, pz = means[g, 0], means[g, 1], means[g, 2]
+        x = r00 * px + r01 * py + r02 * pz + tx
+        y = r10 * px + r11 * py + r12 * pz + ty
+        z = r20 * px + r21 * py + r22 * pz + tz
+        depths[c, g] = z
+        front = z != 0.0
+        iz = 1.0 / (z if front else 1.0)
+        u = fx * x * iz + cx
+        v = fy * y * iz + cy
+        q0, q1, q2, q3 = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]  # `_quat_rot`
+        inv_nrm = 1.0 / math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+        qw, qx, qy, qz = q0 * inv_nrm, q1 * inv_nrm, q2 * inv_nrm, q3 * inv_nrm
+        sx, sy, sz = scales[g, 0], scales[g, 1], scales[g, 2]
+        m00, m01, m02 = (1 - 2 * (qy * qy + qz * qz)) * sx, 2 * (qx * qy - qw * qz) * sy, 2 * (qx * qz + qw * qy) * sz
+        m10, m11, m12 = 2 * (qx * qy + qw * qz) * sx, (1 - 2 * (qx * qx + qz * qz)) * sy, 2 * (qy * qz - qw * qx) * sz
+        m20, m21, m22 = 2 * (qx * qz - qw * qy) * sx, 2 * (qy * qz + qw * qx) * sy, (1 - 2 * (qx * qx + qy * qy)) * sz
+        w00 = m00 * m00 + m01 * m01 + m02 * m02  # world covariance M M^T (`_camera_cov`)
+        w01 = m00 * m10 + m01 * m11 + m02 * m12
+        w02 = m00 * m20 + m01 * m21 + m02 * m22
+        w11 = m10 * m10 + m11 * m11 + m12 * m12
+        w12 = m10 * m20 + m11 * m21 + m12 * m22
+        w22 = m20 * m20 + m21 * m21 + m22 * m22
+        t00 = r00 * w00 + r01 * w01 + r02 * w02  # Rw cov
+        t01 = r00 * w01 + r01 * w11 + r02 * w12
+        t02 = r00 * w02 + r01 * w12 + r02 * w22
+        t10 = r10 * w00 + r11 * w01 + r12 * w02
+        t11 = r10 * w01 + r11 * w11 + r12 * w12
+        t12 = r10 * w02 + r11 * w12 + r12 * w22
+        t20 = r20 * w00 + r21 * w01 + r22 * w02
+        t21 = r20 * w01 + r21 * w11 + r22 * w12
+        t22 = r20 * w02 + r21 * w12 + r22 * w22
+        k00 = t00 * r00 + t01 * r01 + t02 * r02  # camera covariance Rw cov Rw^T
+        k01 = t00 * r10 + t01 * r11 + t02 * r12
+        k02 = t00 * r20 + t01 * r21 + t02 * r22
+        k11 = t10 * r10 + t11 * r11 + t12 * r12
+        k12 = t10 * r20 + t11 * r21 + t12 * r22
+        k21 = t20 * r10 + t21 * r11 + t22 * r12
+        k22 = t20 * r20 + t21 * r21 + t22 * r22
+        rx = min(max(x * iz, -lxn), lxp)  # `_jacobian`
+        ry = min(max(y * iz, -lyn), lyp)
+        j00, j02, j11, j12 = fx * iz, -fx * rx * iz, fy * iz, -fy * ry * iz
+        a = j00 * j00 * k00 + 2 * j00 * j02 * k02 + j02 * j02 * k22 + EPS2D
+        b = j00 * j11 * k01 + j00 * j12 * k02 + j02 * j11 * k21 + j02 * j12 * k22
+        cc = j11 * j11 * k11 + 2 * j11 * j12 * k12 + j12 * j12 * k22 + EPS2D
+        det = a * cc - b * b
+        inv_det = 1.0 / max(det, 1e-10)
+        half = 0.5 * (a + cc)
+        v1 = half + math.sqrt(max(half * half - det, 0.01))
+        radius = np.ceil(3.0 * math.sqrt(max(v1, 0.0)))  # np.ceil: a float, where math.ceil converts to int
+        visible = (det > 0) & (near < z) & (z < far)
+        inside = (u + radius > 0) & (u - radius < width) & (v + radius > 0) & (v - radius < height)
+        u_all[g] = u if front else 0.0
+        v_all[g] = v if front else 0.0
+        con_a[g] = cc * inv_det if front else 0.0
+        con_b[g] = -b * inv_det if front else 0.0
+        con_c[g] = a * inv_det if front else 0.0
+        radii[c, g] = np.int32(radius) if visible & inside & front else np.int32(0)
+    for g in range(start, stop):
+        means2d[c, g, 0], means2d[c, g, 1] = u_all[g], v_all[g]
+        conics[c, g, 0], conics[c, g, 1], conics[c, g, 2] = con_a[g], con_b[g], con_c[g]
+
+
+@njit(cache=True, _nrt=False, error_model="numpy", fastmath=True)
+def _sh_chunk(c, start, means, coeffs, sh_degree, campos, depths, colors, basis):
+    """SH colour of Gaussians start .. start + CHUNK - 1 (fewer at the end) seen from camera c, a Gaussian at a time;
+    those on its plane (z = 0) keep their zeros."""
+    for g in range(start, min(means.shape[0], start + CHUNK)):
+        if depths[c, g] == 0.0:
+            continue
         dx, dy, dz = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
         nd = math.sqrt(dx * dx + dy * dy + dz * dz)
         _sh_basis(dx / nd, dy / nd, dz / nd, basis)
@@ -171,16 +229,6 @@ def _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, ca
         colors[c, g, 2] = max(blue + 0.5, 0.0)
 
 
-@njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=NoAlias)
-def _project_chunk(c, start, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far,
-                   means2d, conics, depths, radii, colors, Rw, scratch):
-    """`_project_one` for Gaussians start .. start + CHUNK - 1 (fewer at the end) in camera c."""
-    s0, s1, s2, s3, s4, basis = scratch
-    for g in range(start, min(means.shape[0], start + CHUNK)):
-        _project_one(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height,
-                     near, far, means2d, conics, depths, radii, colors, Rw, s0, s1, s2, s3, s4, basis)
-
-
 @njit(parallel=PRANGE_ONLY, cache=True, error_model="numpy", fastmath=True)
 def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, near, far):
     """-> means2d [C,N,2], conics [C,N,3], depths [C,N], radii [C,N] int32, colors [C,N,3] (SH; zeros if deg < 0)."""
@@ -191,13 +239,14 @@ def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     depths = np.zeros((c_n, n), dt)
     radii = np.zeros((c_n, n), np.int32)
     colors = np.zeros((c_n, n, 3), dt)
+    planar = (np.empty(n, dt), np.empty(n, dt), np.empty(n, dt), np.empty(n, dt), np.empty(n, dt))
     for c in range(c_n):
         Rw = viewmats[c, :3, :3].astype(np.float64)
         for chunk in prange((n + CHUNK - 1) // CHUNK):
-            scratch = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
-                       np.empty(16))
-            _project_chunk(c, chunk * CHUNK, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width,
-                           height, near, far, means2d, conics, depths, radii, colors, Rw, scratch)
+            _project_chunk(c, chunk * CHUNK, means, quats, scales, viewmats, Ks, width, height, near, far, means2d,
+                           conics, depths, radii, Rw, *planar)
+            if sh_degree >= 0:
+                _sh_chunk(c, chunk * CHUNK, means, coeffs, sh_degree, campos, depths, colors, np.empty(16))
     return means2d, conics, depths, radii, colors
 
 
