@@ -73,14 +73,43 @@ def _sh_basis_grad(x, y, z, gx, gy, gz):
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _quat_rot(quats, g, R):
-    """Unit rotation from Gaussian g's unnormalised wxyz quaternion into R [3, 3]; returns norm and unit quaternion."""
-    q0, q1, q2, q3 = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
+def _unit_rotation(q0, q1, q2, q3):
+    """Norm, unit wxyz and row-major rotation [9] of an unnormalised wxyz quaternion. Scalars and tuples, not
+    arrays: the forward's loop over Gaussians vectorises only without scratch arrays."""
     nrm = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
     w, x, y, z = q0 / nrm, q1 / nrm, q2 / nrm, q3 / nrm
-    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
-    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    rot = (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+           2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+           2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+    return nrm, w, x, y, z, rot
+
+
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
+def _times_transpose(a, b):
+    """A B^T of two row-major 3 x 3 tuples [9]."""
+    return (a[0] * b[0] + a[1] * b[1] + a[2] * b[2], a[0] * b[3] + a[1] * b[4] + a[2] * b[5],
+            a[0] * b[6] + a[1] * b[7] + a[2] * b[8], a[3] * b[0] + a[4] * b[1] + a[5] * b[2],
+            a[3] * b[3] + a[4] * b[4] + a[5] * b[5], a[3] * b[6] + a[4] * b[7] + a[5] * b[8],
+            a[6] * b[0] + a[7] * b[1] + a[8] * b[2], a[6] * b[3] + a[7] * b[4] + a[8] * b[5],
+            a[6] * b[6] + a[7] * b[7] + a[8] * b[8])
+
+
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
+def _covariances(rot, sx, sy, sz, rw):
+    """World covariance R S S R^T and camera-frame covariance Rw cov Rw^T, row-major [9] each, from a Gaussian's
+    rotation `rot` [9] and scales and the camera's rotation `rw` [9]."""
+    m = (rot[0] * sx, rot[1] * sy, rot[2] * sz, rot[3] * sx, rot[4] * sy, rot[5] * sz, rot[6] * sx, rot[7] * sy,
+         rot[8] * sz)
+    cov = _times_transpose(m, m)
+    rw_cov = _times_transpose(rw, cov)  # cov is symmetric: Rw cov^T is Rw cov
+    return cov, _times_transpose(rw_cov, rw)
+
+
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
+def _quat_rot(quats, g, R):
+    """Unit rotation from Gaussian g's unnormalised wxyz quaternion into R [3, 3]; returns norm and unit quaternion."""
+    nrm, w, x, y, z, rot = _unit_rotation(quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])
+    R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2] = rot
     return nrm, w, x, y, z
 
 
@@ -94,19 +123,13 @@ def _mm(A, B, out):
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _camera_cov(quats, scales, g, Rw, R, M, cov, covc, tmp):
-    """World covariance R S S R^T of Gaussian g and its camera-frame rotation Rw cov Rw^T (into cov, covc)."""
-    _quat_rot(quats, g, R)
-    for i in range(3):
-        for j in range(3):
-            M[i, j] = R[i, j] * scales[g, j]
-    for i in range(3):
-        for j in range(3):
-            cov[i, j] = M[i, 0] * M[j, 0] + M[i, 1] * M[j, 1] + M[i, 2] * M[j, 2]
-    _mm(Rw, cov, tmp)
-    for i in range(3):
-        for j in range(3):
-            covc[i, j] = tmp[i, 0] * Rw[j, 0] + tmp[i, 1] * Rw[j, 1] + tmp[i, 2] * Rw[j, 2]
+def _camera_cov(quats, scales, g, Rw, cov, covc):
+    """`_covariances` of Gaussian g into cov and covc [3, 3]."""
+    rot = _unit_rotation(quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])[5]
+    rw = (Rw[0, 0], Rw[0, 1], Rw[0, 2], Rw[1, 0], Rw[1, 1], Rw[1, 2], Rw[2, 0], Rw[2, 1], Rw[2, 2])
+    world, camera = _covariances(rot, scales[g, 0], scales[g, 1], scales[g, 2], rw)
+    cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 0], cov[1, 1], cov[1, 2], cov[2, 0], cov[2, 1], cov[2, 2] = world
+    covc[0, 0], covc[0, 1], covc[0, 2], covc[1, 0], covc[1, 1], covc[1, 2], covc[2, 0], covc[2, 1], covc[2, 2] = camera
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
@@ -137,60 +160,25 @@ def _project_chunk(c, start, means, quats, scales, viewmats, Ks, width, height, 
     into (and rows of one [5, N] array might overlap, for all LLVM knows); they are copied over after. A Gaussian
     on the camera plane (z = 0) gets zeros."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
-    r00, r01, r02 = Rw[0, 0], Rw[0, 1], Rw[0, 2]
-    r10, r11, r12 = Rw[1, 0], Rw[1, 1], Rw[1, 2]
-    r20, r21, r22 = Rw[2, 0], Rw[2, 1], Rw[2, 2]
+    rw = (Rw[0, 0], Rw[0, 1], Rw[0, 2], Rw[1, 0], Rw[1, 1], Rw[1, 2], Rw[2, 0], Rw[2, 1], Rw[2, 2])
     tx, ty, tz = viewmats[c, 0, 3], viewmats[c, 1, 3], viewmats[c, 2, 3]
-    lxp = (width - cx) / fx + 0.3 * (0.5 * width / fx)  # `_jacobian`'s frustum clamp
-    lxn = cx / fx + 0.3 * (0.5 * width / fx)
-    lyp = (height - cy) / fy + 0.3 * (0.5 * height / fy)
-    lyn = cy / fy + 0.3 * (0.5 * height / fy)
     stop = min(means.shape[0], start + CHUNK)
     for g in range(start, stop):
         px, py, pz = means[g, 0], means[g, 1], means[g, 2]
-        x = r00 * px + r01 * py + r02 * pz + tx
-        y = r10 * px + r11 * py + r12 * pz + ty
-        z = r20 * px + r21 * py + r22 * pz + tz
+        x = rw[0] * px + rw[1] * py + rw[2] * pz + tx
+        y = rw[3] * px + rw[4] * py + rw[5] * pz + ty
+        z = rw[6] * px + rw[7] * py + rw[8] * pz + tz
         depths[c, g] = z
         front = z != 0.0
-        iz = 1.0 / (z if front else 1.0)
-        u = fx * x * iz + cx
-        v = fy * y * iz + cy
-        q0, q1, q2, q3 = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]  # `_quat_rot`
-        inv_nrm = 1.0 / math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
-        qw, qx, qy, qz = q0 * inv_nrm, q1 * inv_nrm, q2 * inv_nrm, q3 * inv_nrm
-        sx, sy, sz = scales[g, 0], scales[g, 1], scales[g, 2]
-        m00, m01, m02 = (1 - 2 * (qy * qy + qz * qz)) * sx, 2 * (qx * qy - qw * qz) * sy, 2 * (qx * qz + qw * qy) * sz
-        m10, m11, m12 = 2 * (qx * qy + qw * qz) * sx, (1 - 2 * (qx * qx + qz * qz)) * sy, 2 * (qy * qz - qw * qx) * sz
-        m20, m21, m22 = 2 * (qx * qz - qw * qy) * sx, 2 * (qy * qz + qw * qx) * sy, (1 - 2 * (qx * qx + qy * qy)) * sz
-        w00 = m00 * m00 + m01 * m01 + m02 * m02  # world covariance M M^T (`_camera_cov`)
-        w01 = m00 * m10 + m01 * m11 + m02 * m12
-        w02 = m00 * m20 + m01 * m21 + m02 * m22
-        w11 = m10 * m10 + m11 * m11 + m12 * m12
-        w12 = m10 * m20 + m11 * m21 + m12 * m22
-        w22 = m20 * m20 + m21 * m21 + m22 * m22
-        t00 = r00 * w00 + r01 * w01 + r02 * w02  # Rw cov
-        t01 = r00 * w01 + r01 * w11 + r02 * w12
-        t02 = r00 * w02 + r01 * w12 + r02 * w22
-        t10 = r10 * w00 + r11 * w01 + r12 * w02
-        t11 = r10 * w01 + r11 * w11 + r12 * w12
-        t12 = r10 * w02 + r11 * w12 + r12 * w22
-        t20 = r20 * w00 + r21 * w01 + r22 * w02
-        t21 = r20 * w01 + r21 * w11 + r22 * w12
-        t22 = r20 * w02 + r21 * w12 + r22 * w22
-        k00 = t00 * r00 + t01 * r01 + t02 * r02  # camera covariance Rw cov Rw^T
-        k01 = t00 * r10 + t01 * r11 + t02 * r12
-        k02 = t00 * r20 + t01 * r21 + t02 * r22
-        k11 = t10 * r10 + t11 * r11 + t12 * r12
-        k12 = t10 * r20 + t11 * r21 + t12 * r22
-        k21 = t20 * r10 + t21 * r11 + t22 * r12
-        k22 = t20 * r20 + t21 * r21 + t22 * r22
-        rx = min(max(x * iz, -lxn), lxp)  # `_jacobian`
-        ry = min(max(y * iz, -lyn), lyp)
-        j00, j02, j11, j12 = fx * iz, -fx * rx * iz, fy * iz, -fy * ry * iz
-        a = j00 * j00 * k00 + 2 * j00 * j02 * k02 + j02 * j02 * k22 + EPS2D
-        b = j00 * j11 * k01 + j00 * j12 * k02 + j02 * j11 * k21 + j02 * j12 * k22
-        cc = j11 * j11 * k11 + 2 * j11 * j12 * k12 + j12 * j12 * k22 + EPS2D
+        zs = z if front else 1.0  # anything finite: a Gaussian on the camera plane gets zeros below
+        u = fx * x / zs + cx
+        v = fy * y / zs + cy
+        rot = _unit_rotation(quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])[5]
+        k = _covariances(rot, scales[g, 0], scales[g, 1], scales[g, 2], rw)[1]
+        j00, j02, j11, j12, _, _, _, _ = _jacobian(x, y, zs, fx, fy, cx, cy, width, height)
+        a = j00 * j00 * k[0] + 2 * j00 * j02 * k[2] + j02 * j02 * k[8] + EPS2D
+        b = j00 * j11 * k[1] + j00 * j12 * k[2] + j02 * j11 * k[7] + j02 * j12 * k[8]
+        cc = j11 * j11 * k[4] + 2 * j11 * j12 * k[5] + j12 * j12 * k[8] + EPS2D
         det = a * cc - b * b
         inv_det = 1.0 / max(det, 1e-10)
         half = 0.5 * (a + cc)
@@ -258,12 +246,12 @@ def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks
     [3, 3] buffers but for J, jc [2, 3] and the SH buffers [16]."""
     g_means2d, g_conics, g_depths, g_colors = upstream
     g_means, g_coeffs, g_cov, pose_part = outs
-    s0, s1, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz = scratch
+    _, _, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz = scratch
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
     x = Rw[0, 0] * means[g, 0] + Rw[0, 1] * means[g, 1] + Rw[0, 2] * means[g, 2] + viewmats[c, 0, 3]
     y = Rw[1, 0] * means[g, 0] + Rw[1, 1] * means[g, 1] + Rw[1, 2] * means[g, 2] + viewmats[c, 1, 3]
     z = Rw[2, 0] * means[g, 0] + Rw[2, 1] * means[g, 1] + Rw[2, 2] * means[g, 2] + viewmats[c, 2, 3]
-    _camera_cov(quats, scales, g, Rw, s0, s1, cov, covc, t33)
+    _camera_cov(quats, scales, g, Rw, cov, covc)
     j00, j02, j11, j12, free_x, free_y, rx, ry = _jacobian(x, y, z, fx, fy, cx, cy, width, height)
     J[0, 0], J[0, 1], J[0, 2], J[1, 0], J[1, 1], J[1, 2] = j00, 0.0, j02, 0.0, j11, j12
     _mm(J, covc, jc)                                       # J covc [2, 3]
