@@ -43,6 +43,20 @@ def test_gaussians_at_inside_and_behind_the_near_plane_are_culled(backend):
     assert (alpha == 0).all() and (img == 0).all()
 
 
+def test_culled_gaussians_on_behind_and_inside_the_near_plane_get_exactly_zero_gradient():
+    """The projection's backward runs its geometry for every Gaussian, drawn or not, and drops the undrawn ones'
+    terms: a Gaussian on the camera plane must not put a NaN into them."""
+    culled = [[0, 0, 0.0], [0, 0, -1.0], [0, 0, 0.25], [0.3, -0.2, 0.0]]
+    params = [p.requires_grad_(True) for p in gaussians(culled + [[0, 0, 2.0]], [0.05, 0.05, 0.05], [0.9])]
+    img, alpha, meta = render(params, near_plane=0.5)
+    (img.sum() + alpha.sum()).backward()
+    assert meta["radii"][0].tolist()[:4] == [0, 0, 0, 0] and meta["radii"][0, 4] > 0
+    for name, p in zip(("means", "quats", "scales", "opacities", "colors"), params):
+        assert torch.isfinite(p.grad).all(), name
+        assert (p.grad[:4] == 0).all(), name
+    assert params[0].grad[4].abs().sum() > 0
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_gaussian_just_beyond_the_near_plane_is_drawn(backend):
     params = gaussians([[0, 0, 0.55]], [0.02, 0.02, 0.02], [0.9])

@@ -2,7 +2,8 @@
 
 As small torch ops these dominated a CPU training step once compositing was fast, so each Gaussian is
 handled in one pass here. Conventions match `raster_reference.project` and `eval_sh` exactly. The
-backward writes per-(camera, Gaussian) pose partials and sums them in a fixed order: deterministic.
+backward sums pose partials per camera and chunk of Gaussians, then over chunks in a fixed order: deterministic
+at any thread count.
 
 Laid out to compile fast on a fresh install: numba's IR-level `inline="always"` types a helper afresh at every
 call site, and the parfor passes walk all that is inlined into a prange body, twice. So each prange body only
@@ -103,33 +104,6 @@ def _covariances(rot, sx, sy, sz, rw):
     cov = _times_transpose(m, m)
     rw_cov = _times_transpose(rw, cov)  # cov is symmetric: Rw cov^T is Rw cov
     return cov, _times_transpose(rw_cov, rw)
-
-
-@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _quat_rot(quats, g, R):
-    """Unit rotation from Gaussian g's unnormalised wxyz quaternion into R [3, 3]; returns norm and unit quaternion."""
-    nrm, w, x, y, z, rot = _unit_rotation(quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])
-    R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2] = rot
-    return nrm, w, x, y, z
-
-
-@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _mm(A, B, out):
-    """out = A @ B for A [r, 3], B [3, 3] (numba's @ calls BLAS and allocates: far too slow per Gaussian). Fixed
-    sizes unroll; shapes as loop bounds make LLVM build vector loops of gathers, slower to run and to compile."""
-    for i in range(A.shape[0]):
-        for j in range(3):
-            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
-
-
-@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _camera_cov(quats, scales, g, Rw, cov, covc):
-    """`_covariances` of Gaussian g into cov and covc [3, 3]."""
-    rot = _unit_rotation(quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])[5]
-    rw = (Rw[0, 0], Rw[0, 1], Rw[0, 2], Rw[1, 0], Rw[1, 1], Rw[1, 2], Rw[2, 0], Rw[2, 1], Rw[2, 2])
-    world, camera = _covariances(rot, scales[g, 0], scales[g, 1], scales[g, 2], rw)
-    cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 0], cov[1, 1], cov[1, 2], cov[2, 0], cov[2, 1], cov[2, 2] = world
-    covc[0, 0], covc[0, 1], covc[0, 2], covc[1, 0], covc[1, 1], covc[1, 2], covc[2, 0], covc[2, 1], covc[2, 2] = camera
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
@@ -239,180 +213,204 @@ def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, colors,
-                     upstream, outs, Rw, scratch, want_pose):
-    """Backward of `_project_one` for (c, g): adds into outs = (g_means, g_coeffs, g_cov (world covariance),
-    pose_part; written only if want_pose). upstream = (g_means2d, g_conics, g_depths, g_colors). scratch holds
-    [3, 3] buffers but for J, jc [2, 3] and the SH buffers [16]."""
-    g_means2d, g_conics, g_depths, g_colors = upstream
-    g_means, g_coeffs, g_cov, pose_part = outs
-    _, _, cov, covc, t33, g_covc, gR, J, jc, basis, bx, by, bz = scratch
+def _transposed(a):
+    """A^T of a row-major 3 x 3 tuple [9]."""
+    return a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8]
+
+
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
+def _at(flat, row, width, k):
+    """Element k of row `row` of a flattened [rows, width] array. Indexing [N, k] arrays in a loop, LLVM vectorises
+    only behind a runtime check that the row length is 1 (it speculates on strides it cannot see), so the vector
+    code never runs; a constant width and an unsigned index give it unit strides to work with."""
+    return flat[row * np.uint64(width) + np.uint64(k)]
+
+
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
+def _geometry_bwd(c, g, means, quats, scales, viewmats, Ks, width, height, radii, g_means2d, g_conics, g_depths, rw):
+    """Backward of `_project_chunk`'s geometry for (c, g), in scalars and tuples so that a loop over Gaussians
+    vectorises: -> d loss / d mean in world (3), d loss / d world covariance (row-major [9], symmetric), and the pose
+    partials d Rw (9) and d t (3). A Gaussian camera c does not draw (radii 0) gets zeros: its upstream is taken as
+    zero and its depth as 1, so nothing divides by zero. means, quats, scales, g_means2d and g_conics come
+    flattened (`_at`), and g is unsigned."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
-    x = Rw[0, 0] * means[g, 0] + Rw[0, 1] * means[g, 1] + Rw[0, 2] * means[g, 2] + viewmats[c, 0, 3]
-    y = Rw[1, 0] * means[g, 0] + Rw[1, 1] * means[g, 1] + Rw[1, 2] * means[g, 2] + viewmats[c, 1, 3]
-    z = Rw[2, 0] * means[g, 0] + Rw[2, 1] * means[g, 1] + Rw[2, 2] * means[g, 2] + viewmats[c, 2, 3]
-    _camera_cov(quats, scales, g, Rw, cov, covc)
+    px, py, pz = _at(means, g, 3, 0), _at(means, g, 3, 1), _at(means, g, 3, 2)
+    cg = np.uint64(c) * np.uint64(radii.shape[1]) + g
+    x = rw[0] * px + rw[1] * py + rw[2] * pz + viewmats[c, 0, 3]
+    y = rw[3] * px + rw[4] * py + rw[5] * pz + viewmats[c, 1, 3]
+    z = rw[6] * px + rw[7] * py + rw[8] * pz + viewmats[c, 2, 3]
+    seen = radii[c, g] > 0
+    z = z if seen else 1.0
+    rot = _unit_rotation(_at(quats, g, 4, 0), _at(quats, g, 4, 1), _at(quats, g, 4, 2), _at(quats, g, 4, 3))[5]
+    cov, k = _covariances(rot, _at(scales, g, 3, 0), _at(scales, g, 3, 1), _at(scales, g, 3, 2), rw)
     j00, j02, j11, j12, free_x, free_y, rx, ry = _jacobian(x, y, z, fx, fy, cx, cy, width, height)
-    J[0, 0], J[0, 1], J[0, 2], J[1, 0], J[1, 1], J[1, 2] = j00, 0.0, j02, 0.0, j11, j12
-    _mm(J, covc, jc)                                       # J covc [2, 3]
-    a = jc[0, 0] * J[0, 0] + jc[0, 2] * J[0, 2] + EPS2D
-    b = jc[0, 1] * J[1, 1] + jc[0, 2] * J[1, 2]
-    cc = jc[1, 1] * J[1, 1] + jc[1, 2] * J[1, 2] + EPS2D
+    jc00, jc01, jc02 = j00 * k[0] + j02 * k[6], j00 * k[1] + j02 * k[7], j00 * k[2] + j02 * k[8]   # J covc [2, 3]
+    jc10, jc11, jc12 = j11 * k[3] + j12 * k[6], j11 * k[4] + j12 * k[7], j11 * k[5] + j12 * k[8]
+    a = jc00 * j00 + jc02 * j02 + EPS2D
+    b = jc01 * j11 + jc02 * j12
+    cc = jc11 * j11 + jc12 * j12 + EPS2D
     det = max(a * cc - b * b, 1e-10)
     qa, qb, qc = cc / det, -b / det, a / det
-    ga, gb, gc = g_conics[c, g, 0], 0.5 * g_conics[c, g, 1], g_conics[c, g, 2]
+    ga = _at(g_conics, cg, 3, 0) if seen else 0.0
+    gb = 0.5 * _at(g_conics, cg, 3, 1) if seen else 0.0
+    gc = _at(g_conics, cg, 3, 2) if seen else 0.0
     # d loss / d cov2d = -Q G Q (Q = conic matrix, G = its symmetric gradient)
     g2_00 = -(qa * (qa * ga + qb * gb) + qb * (qa * gb + qb * gc))
     g2_01 = -(qa * (qb * ga + qc * gb) + qb * (qb * gb + qc * gc))
     g2_11 = -(qb * (qb * ga + qc * gb) + qc * (qb * gb + qc * gc))
-    for i in range(3):
-        for j in range(3):
-            g_covc[i, j] = (J[0, i] * (g2_00 * J[0, j] + g2_01 * J[1, j])
-                            + J[1, i] * (g2_01 * J[0, j] + g2_11 * J[1, j]))
-    # gJ = 2 g2 (J covc)
-    gj00 = 2 * (g2_00 * jc[0, 0] + g2_01 * jc[1, 0])
-    gj02 = 2 * (g2_00 * jc[0, 2] + g2_01 * jc[1, 2])
-    gj11 = 2 * (g2_01 * jc[0, 1] + g2_11 * jc[1, 1])
-    gj12 = 2 * (g2_01 * jc[0, 2] + g2_11 * jc[1, 2])
-    gu, gv = g_means2d[c, g, 0], g_means2d[c, g, 1]
+    # d loss / d covc = J^T g2 J, J = [[j00, 0, j02], [0, j11, j12]]
+    h00, h01 = g2_00 * j00, g2_01 * j00
+    h10, h11 = g2_01 * j11, g2_11 * j11
+    h20, h21 = g2_00 * j02 + g2_01 * j12, g2_01 * j02 + g2_11 * j12
+    g_covc = (j00 * h00, j00 * h10, j00 * h20, j11 * h01, j11 * h11, j11 * h21,
+              j02 * h00 + j12 * h01, j02 * h10 + j12 * h11, j02 * h20 + j12 * h21)
+    gj00 = 2 * (g2_00 * jc00 + g2_01 * jc10)                # gJ = 2 g2 (J covc)
+    gj02 = 2 * (g2_00 * jc02 + g2_01 * jc12)
+    gj11 = 2 * (g2_01 * jc01 + g2_11 * jc11)
+    gj12 = 2 * (g2_01 * jc02 + g2_11 * jc12)
+    gu = _at(g_means2d, cg, 2, 0) if seen else 0.0
+    gv = _at(g_means2d, cg, 2, 1) if seen else 0.0
+    gd = g_depths[c, g] if seen else 0.0
     z2 = z * z
-    gx = fx / z * gu
-    gy = fy / z * gv
-    gz = -fx * x / z2 * gu - fy * y / z2 * gv + g_depths[c, g]
-    gz += -fx / z2 * gj00 - fy / z2 * gj11 + fx * rx / z2 * gj02 + fy * ry / z2 * gj12
-    if free_x:
-        gx += -fx / z2 * gj02
-        gz += fx * x / (z2 * z) * gj02
-    if free_y:
-        gy += -fy / z2 * gj12
-        gz += fy * y / (z2 * z) * gj12
-    # covc = Rw cov Rw^T: g_cov += Rw^T g_covc Rw ; gR = 2 g_covc Rw cov
-    for i in range(3):
-        for j in range(3):
-            t33[i, j] = Rw[0, i] * g_covc[0, j] + Rw[1, i] * g_covc[1, j] + Rw[2, i] * g_covc[2, j]
-    for i in range(3):
-        for j in range(3):
-            g_cov[i, j] += t33[i, 0] * Rw[0, j] + t33[i, 1] * Rw[1, j] + t33[i, 2] * Rw[2, j]
-    g_mc = (gx, gy, gz)
-    for i in range(3):
-        for j in range(3):
-            g_means[g, j] += Rw[i, j] * g_mc[i]
-    if want_pose:
-        _mm(g_covc, Rw, t33)
-        _mm(t33, cov, gR)
-        for i in range(3):
-            for j in range(3):
-                pose_part[c, g, 3 * i + j] = 2 * gR[i, j] + g_mc[i] * means[g, j]
-            pose_part[c, g, 9 + i] = g_mc[i]
-    if sh_degree >= 0:
-        d0, d1, d2 = means[g, 0] - campos[c, 0], means[g, 1] - campos[c, 1], means[g, 2] - campos[c, 2]
-        nd = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        u0, u1, u2 = d0 / nd, d1 / nd, d2 / nd
-        _sh_basis(u0, u1, u2, basis)
-        _sh_basis_grad(u0, u1, u2, bx, by, bz)
-        gd0 = 0.0
-        gd1 = 0.0
-        gd2 = 0.0
-        g_r = g_colors[c, g, 0] if colors[c, g, 0] > 0.0 else 0.0  # no gradient where the colour was clamped to 0
-        g_g = g_colors[c, g, 1] if colors[c, g, 1] > 0.0 else 0.0
-        g_b = g_colors[c, g, 2] if colors[c, g, 2] > 0.0 else 0.0
-        for k in range((sh_degree + 1) ** 2):
-            g_coeffs[g, k, 0] += basis[k] * g_r
-            g_coeffs[g, k, 1] += basis[k] * g_g
-            g_coeffs[g, k, 2] += basis[k] * g_b
-            g_basis = coeffs[g, k, 0] * g_r + coeffs[g, k, 1] * g_g + coeffs[g, k, 2] * g_b
-            gd0 += bx[k] * g_basis
-            gd1 += by[k] * g_basis
-            gd2 += bz[k] * g_basis
-        dot = u0 * gd0 + u1 * gd1 + u2 * gd2
-        gm = ((gd0 - u0 * dot) / nd, (gd1 - u1 * dot) / nd, (gd2 - u2 * dot) / nd)
-        for i in range(3):
-            g_means[g, i] += gm[i]
-            if want_pose:
-                pose_part[c, g, 12 + i] = -gm[i]
+    gx = fx / z * gu + (-fx / z2 * gj02 if free_x else 0.0)
+    gy = fy / z * gv + (-fy / z2 * gj12 if free_y else 0.0)
+    gz = (-fx * x / z2 * gu - fy * y / z2 * gv + gd - fx / z2 * gj00 - fy / z2 * gj11 + fx * rx / z2 * gj02
+          + fy * ry / z2 * gj12 + (fx * x / (z2 * z) * gj02 if free_x else 0.0)
+          + (fy * y / (z2 * z) * gj12 if free_y else 0.0))
+    rwt = _transposed(rw)
+    g_cov = _times_transpose(_times_transpose(rwt, g_covc), rwt)     # covc = Rw cov Rw^T: Rw^T g_covc Rw
+    g_mean = (rw[0] * gx + rw[3] * gy + rw[6] * gz, rw[1] * gx + rw[4] * gy + rw[7] * gz,
+              rw[2] * gx + rw[5] * gy + rw[8] * gz)
+    g_r = _times_transpose(_times_transpose(g_covc, rwt), cov)      # d Rw / 2 = g_covc Rw cov
+    g_rw = (2 * g_r[0] + gx * px, 2 * g_r[1] + gx * py, 2 * g_r[2] + gx * pz,
+            2 * g_r[3] + gy * px, 2 * g_r[4] + gy * py, 2 * g_r[5] + gy * pz,
+            2 * g_r[6] + gz * px, 2 * g_r[7] + gz * py, 2 * g_r[8] + gz * pz)
+    return g_mean, g_cov, g_rw, (gx, gy, gz)
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, R, M, gM):
-    """Chain d loss / d world covariance into the (unnormalised) quaternion and the scales of Gaussian g."""
-    nrm, w, x, y, z = _quat_rot(quats, g, R)
-    for i in range(3):
-        for j in range(3):
-            M[i, j] = R[i, j] * scales[g, j]
-    for i in range(3):
-        for j in range(3):
-            gM[i, j] = ((g_cov[i, 0] + g_cov[0, i]) * M[0, j] + (g_cov[i, 1] + g_cov[1, i]) * M[1, j]
-                        + (g_cov[i, 2] + g_cov[2, i]) * M[2, j])
-    for j in range(3):
-        g_scales[g, j] = gM[0, j] * R[0, j] + gM[1, j] * R[1, j] + gM[2, j] * R[2, j]
-        for i in range(3):
-            gM[i, j] *= scales[g, j]
-    G = gM
-    gw = 2 * (-z * G[0, 1] + y * G[0, 2] + z * G[1, 0] - x * G[1, 2] - y * G[2, 0] + x * G[2, 1])
-    gx = 2 * (y * G[0, 1] + z * G[0, 2] + y * G[1, 0] - 2 * x * G[1, 1] - w * G[1, 2] + z * G[2, 0]
-              + w * G[2, 1] - 2 * x * G[2, 2])
-    gy = 2 * (-2 * y * G[0, 0] + x * G[0, 1] + w * G[0, 2] + x * G[1, 0] + z * G[1, 2] - w * G[2, 0]
-              + z * G[2, 1] - 2 * y * G[2, 2])
-    gz = 2 * (-2 * z * G[0, 0] - w * G[0, 1] + x * G[0, 2] + w * G[1, 0] - 2 * z * G[1, 1] + y * G[1, 2]
-              + x * G[2, 0] + y * G[2, 1])
+def _cov_to_params(q0, q1, q2, q3, sx, sy, sz, s):
+    """Chain d loss / d world covariance, its upper triangle s [6], into the unnormalised wxyz quaternion and the
+    scales: -> (d quaternion [4], d scales [3])."""
+    nrm, w, x, y, z, rot = _unit_rotation(q0, q1, q2, q3)
+    m = (rot[0] * sx, rot[1] * sy, rot[2] * sz, rot[3] * sx, rot[4] * sy, rot[5] * sz, rot[6] * sx, rot[7] * sy,
+         rot[8] * sz)                                         # cov = M M^T, M = R S
+    sym = (2 * s[0], 2 * s[1], 2 * s[2], 2 * s[1], 2 * s[3], 2 * s[4], 2 * s[2], 2 * s[4], 2 * s[5])
+    gm = _times_transpose(sym, _transposed(m))                # d M = (g + g^T) M
+    g_scales = (gm[0] * rot[0] + gm[3] * rot[3] + gm[6] * rot[6], gm[1] * rot[1] + gm[4] * rot[4] + gm[7] * rot[7],
+                gm[2] * rot[2] + gm[5] * rot[5] + gm[8] * rot[8])
+    G = (gm[0] * sx, gm[1] * sy, gm[2] * sz, gm[3] * sx, gm[4] * sy, gm[5] * sz, gm[6] * sx, gm[7] * sy, gm[8] * sz)
+    gw = 2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7])
+    gx = 2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8])
+    gy = 2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8])
+    gz = 2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7])
     dot = w * gw + x * gx + y * gy + z * gz
-    g_quats[g, 0] = (gw - w * dot) / nrm
-    g_quats[g, 1] = (gx - x * dot) / nrm
-    g_quats[g, 2] = (gy - y * dot) / nrm
-    g_quats[g, 3] = (gz - z * dot) / nrm
+    return ((gw - w * dot) / nrm, (gx - x * dot) / nrm, (gy - y * dot) / nrm, (gz - z * dot) / nrm), g_scales
 
 
-@njit(cache=True, forceinline=True, _nrt=False)
-def _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
-    """Whether Gaussian g has a non-zero upstream gradient in camera c. One hidden in that view (the back of the
-    stone, most of the NGS noise) has none, and its backward would only add zeros: about half of them in an NGS
-    training step."""
-    if g_depths[c, g] != 0.0:
-        return True
-    for i in range(2):
-        if g_means2d[c, g, i] != 0.0:
-            return True
-    for i in range(3):
-        if g_conics[c, g, i] != 0.0:
-            return True
-    for i in range(g_colors.shape[2]):
-        if g_colors[c, g, i] != 0.0:
-            return True
-    return False
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
+def _accumulate(g, g_mean, g_cov, mx, my, mz, s00, s01, s02, s11, s12, s22):
+    """Add one camera's mean and world-covariance gradient of Gaussian g into the [N] sums."""
+    mx[g] += g_mean[0]
+    my[g] += g_mean[1]
+    mz[g] += g_mean[2]
+    s00[g] += g_cov[0]
+    s01[g] += g_cov[1]
+    s02[g] += g_cov[2]
+    s11[g] += g_cov[4]
+    s12[g] += g_cov[5]
+    s22[g] += g_cov[8]
+
+
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
+def _put(flat, g, values):
+    """Row g of a flattened [N, len(values)] array. A constant row length and an unsigned index let LLVM vectorise
+    a loop of these stores; with an [N, k] array's runtime strides, rows might overlap for all it knows."""
+    row = g * np.uint64(len(values))
+    for k in range(len(values)):
+        flat[row + np.uint64(k)] = values[k]
 
 
 @njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=NoAlias)
 def _project_bwd_chunk(start, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii,
-                       colors, Rws, upstream, want_pose, outs, g_quats, g_scales, Rw, scratch):
-    """The backward of Gaussians start .. start + CHUNK - 1 (fewer at the end) over every camera; arguments as
-    `_project_one_bwd`'s, Rws [C, 3, 3] the cameras' rotations and Rw [3, 3] scratch."""
-    g_means2d, g_conics, g_depths, g_colors = upstream
-    g_means, g_coeffs, g_cov = outs[0], outs[1], outs[2]
-    s0, s1, gR = scratch[0], scratch[1], scratch[6]
-    for g in range(start, min(means.shape[0], start + CHUNK)):
-        for i in range(3):
-            g_means[g, i] = 0.0
-            for j in range(3):
-                g_cov[i, j] = 0.0
+                       colors, Rws, g_means2d, g_conics, g_depths, g_colors, want_pose, g_means, g_quats, g_scales,
+                       g_coeffs, pose_sums, mx, my, mz, s00, s01, s02, s11, s12, s22, basis, bx, by, bz, g_sh):
+    """The backward of Gaussians start .. start + CHUNK - 1 (fewer at the end) over every camera.
+
+    The geometry runs camera by camera in loops over Gaussians that LLVM vectorises, as in `_project_chunk`: the
+    sums go into [N] arrays (mx .. s22: the mean, and the upper triangle of the world covariance), and a Gaussian
+    a camera does not draw adds zeros rather than branching. The SH backward then runs a Gaussian at a time and skips
+    those. g_means, g_quats and g_scales are flattened (`_put`); pose_sums [C, chunks, 15] gets this chunk's pose
+    partials (d Rw 9, d t 3, d campos 3) if want_pose."""
+    stop = min(radii.shape[1], start + CHUNK)
+    chunk = start // CHUNK
+    first, last = np.uint64(start), np.uint64(stop)  # unsigned: no wraparound select, which keeps LLVM from seeing
+    # that a loop's loads and stores of mx[g] .. s22[g] are to the same element
+    for g in range(first, last):
+        mx[g], my[g], mz[g] = 0.0, 0.0, 0.0
+        s00[g], s01[g], s02[g], s11[g], s12[g], s22[g] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    for c in range(viewmats.shape[0]):
+        rw = (Rws[c, 0, 0], Rws[c, 0, 1], Rws[c, 0, 2], Rws[c, 1, 0], Rws[c, 1, 1], Rws[c, 1, 2], Rws[c, 2, 0],
+              Rws[c, 2, 1], Rws[c, 2, 2])
+        if want_pose:
+            for g in range(first, last):
+                g_mean, g_cov, g_rw, g_t = _geometry_bwd(c, g, means, quats, scales, viewmats, Ks, width, height,
+                                                         radii, g_means2d, g_conics, g_depths, rw)
+                _accumulate(g, g_mean, g_cov, mx, my, mz, s00, s01, s02, s11, s12, s22)
+                for k in range(9):
+                    pose_sums[c, chunk, k] += g_rw[k]
+                for k in range(3):
+                    pose_sums[c, chunk, 9 + k] += g_t[k]
+        else:
+            for g in range(first, last):
+                g_mean, g_cov, _, _ = _geometry_bwd(c, g, means, quats, scales, viewmats, Ks, width, height, radii,
+                                                    g_means2d, g_conics, g_depths, rw)
+                _accumulate(g, g_mean, g_cov, mx, my, mz, s00, s01, s02, s11, s12, s22)
+    used = (sh_degree + 1) ** 2 if sh_degree >= 0 else 0
+    for g in range(start, stop):
+        gu = np.uint64(g)
+        for k in range(3 * used):
+            g_sh[k] = 0.0  # summed here, in cache, so that g_coeffs is written once and never zeroed
+        for c in range(viewmats.shape[0] if used else 0):
+            g_r = g_colors[c, g, 0] if colors[c, g, 0] > 0.0 else 0.0  # no gradient where the colour was clamped to 0
+            g_g = g_colors[c, g, 1] if colors[c, g, 1] > 0.0 else 0.0
+            g_b = g_colors[c, g, 2] if colors[c, g, 2] > 0.0 else 0.0
+            if radii[c, g] <= 0 or (g_r == 0.0 and g_g == 0.0 and g_b == 0.0):
+                continue  # hidden in this view (the back of the stone, most of the NGS noise): about half of them
+            d0, d1, d2 = (_at(means, gu, 3, 0) - campos[c, 0], _at(means, gu, 3, 1) - campos[c, 1],
+                          _at(means, gu, 3, 2) - campos[c, 2])
+            nd = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            u0, u1, u2 = d0 / nd, d1 / nd, d2 / nd
+            _sh_basis(u0, u1, u2, basis)
+            _sh_basis_grad(u0, u1, u2, bx, by, bz)
+            gd0, gd1, gd2 = 0.0, 0.0, 0.0
+            for k in range(used):
+                g_sh[3 * k] += basis[k] * g_r
+                g_sh[3 * k + 1] += basis[k] * g_g
+                g_sh[3 * k + 2] += basis[k] * g_b
+                g_basis = coeffs[g, k, 0] * g_r + coeffs[g, k, 1] * g_g + coeffs[g, k, 2] * g_b
+                gd0 += bx[k] * g_basis
+                gd1 += by[k] * g_basis
+                gd2 += bz[k] * g_basis
+            dot = u0 * gd0 + u1 * gd1 + u2 * gd2
+            gm0, gm1, gm2 = (gd0 - u0 * dot) / nd, (gd1 - u1 * dot) / nd, (gd2 - u2 * dot) / nd
+            mx[g] += gm0
+            my[g] += gm1
+            mz[g] += gm2
+            if want_pose:
+                pose_sums[c, chunk, 12] -= gm0
+                pose_sums[c, chunk, 13] -= gm1
+                pose_sums[c, chunk, 14] -= gm2
         for k in range(g_coeffs.shape[1]):
             for i in range(3):
-                g_coeffs[g, k, i] = 0.0
-        seen = False
-        for c in range(viewmats.shape[0]):
-            if radii[c, g] > 0 and _has_upstream(c, g, g_means2d, g_conics, g_depths, g_colors):
-                seen = True
-                for i in range(3):
-                    for j in range(3):
-                        Rw[i, j] = Rws[c, i, j]
-                _project_one_bwd(c, g, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width,
-                                 height, colors, upstream, outs, Rw, scratch, want_pose)
-        if seen:
-            _cov_to_params(g, quats, scales, g_cov, g_quats, g_scales, s0, s1, gR)
-        else:
-            for i in range(4):
-                g_quats[g, i] = 0.0
-            for i in range(3):
-                g_scales[g, i] = 0.0
+                g_coeffs[g, k, i] = g_sh[3 * k + i] if k < used else 0.0
+    for g in range(first, last):
+        _put(g_means, g, (mx[g], my[g], mz[g]))
+        g_quat, g_scale = _cov_to_params(_at(quats, g, 4, 0), _at(quats, g, 4, 1), _at(quats, g, 4, 2),
+                                         _at(quats, g, 4, 3), _at(scales, g, 3, 0), _at(scales, g, 3, 1),
+                                         _at(scales, g, 3, 2), (s00[g], s01[g], s02[g], s11[g], s12[g], s22[g]))
+        _put(g_quats, g, g_quat)
+        _put(g_scales, g, g_scale)
 
 
 @njit(parallel=PRANGE_ONLY, cache=True, error_model="numpy", fastmath=True)
@@ -421,32 +419,34 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     """-> g_means [N,3], g_quats [N,4], g_scales [N,3], g_coeffs [N,K,3], g_viewmats [C,4,4], g_campos [C,3]
     (the last two zero unless want_pose: training poses are constants, so their partials are skipped)."""
     c_n, n = viewmats.shape[0], means.shape[0]
+    chunks = (n + CHUNK - 1) // CHUNK
     dt = means.dtype
-    g_means = np.empty((n, 3), dt)  # each Gaussian's rows are zeroed in its chunk: np.zeros is a serial memset
+    g_means = np.empty((n, 3), dt)  # each Gaussian's rows are written in its chunk: np.zeros is a serial memset
     g_quats = np.empty((n, 4), dt)
     g_scales = np.empty((n, 3), dt)
     g_coeffs = np.empty(coeffs.shape, dt)
-    pose_part = np.zeros((c_n, n if want_pose else 0, 15))  # per (camera, Gaussian): d Rw (9), d t (3), d campos (3)
+    flat = (g_means.reshape(3 * n), g_quats.reshape(4 * n), g_scales.reshape(3 * n))  # views, for `_put`
+    flat_in = (means.reshape(3 * n), quats.reshape(4 * n), scales.reshape(3 * n))      # and for `_at`
+    flat_up = (g_means2d.reshape(2 * c_n * n), g_conics.reshape(3 * c_n * n))
+    pose_sums = np.zeros((c_n, chunks if want_pose else 0, 15))  # per camera and chunk, summed in a fixed order
+    sums = (np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n),
+            np.empty(n))
     Rws = np.empty((c_n, 3, 3))
-    # loops here and below, not Rws[c] = viewmats[c, :3, :3] and pose_part.sum(axis=1): those compile error paths
+    # loops here and below, not Rws[c] = viewmats[c, :3, :3] and pose_sums.sum(axis=1): those compile error paths
     # and string code for seconds
     for c in range(c_n):
         for i in range(3):
             for j in range(3):
                 Rws[c, i, j] = viewmats[c, i, j]
-    for chunk in prange((n + CHUNK - 1) // CHUNK):
-        scratch = (np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
-                   np.empty((3, 3)), np.empty((3, 3)), np.empty((2, 3)), np.empty((2, 3)), np.empty(16), np.empty(16),
-                   np.empty(16), np.empty(16))
-        _project_bwd_chunk(chunk * CHUNK, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height,
-                           radii, colors, Rws, (g_means2d, g_conics, g_depths, g_colors), want_pose,
-                           (g_means, g_coeffs, np.empty((3, 3)), pose_part), g_quats, g_scales, np.empty((3, 3)),
-                           scratch)
-    pose = np.zeros((c_n, 15))                             # [C, 15], summed in a fixed order
+    for chunk in prange(chunks):
+        _project_bwd_chunk(chunk * CHUNK, *flat_in, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii,
+                           colors, Rws, *flat_up, g_depths, g_colors, want_pose, *flat, g_coeffs, pose_sums, *sums,
+                           np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(48))
+    pose = np.zeros((c_n, 15))
     for c in range(c_n):
-        for g in range(pose_part.shape[1]):
+        for chunk in range(pose_sums.shape[1]):
             for k in range(15):
-                pose[c, k] += pose_part[c, g, k]
+                pose[c, k] += pose_sums[c, chunk, k]
     g_viewmats = np.zeros((c_n, 4, 4), dt)
     g_campos = np.zeros((c_n, 3), dt)
     for c in range(c_n):
