@@ -124,15 +124,23 @@ def _jacobian(x, y, z, fx, fy, cx, cy, width, height):
 CHUNK = 64
 
 
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
+def _put(flat, g, values):
+    """Row g of a flattened [N, len(values)] array. A constant row length and an unsigned index let LLVM vectorise
+    a loop of these stores; with an [N, k] array's runtime strides, rows might overlap for all it knows."""
+    row = g * np.uint64(len(values))
+    for k in range(len(values)):
+        flat[row + np.uint64(k)] = values[k]
+
+
 @njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=NoAlias)
 def _project_chunk(c, start, means, quats, scales, viewmats, Ks, width, height, near, far, means2d, conics, depths,
-                   radii, Rw, u_all, v_all, con_a, con_b, con_c):
+                   radii, Rw):
     """Project Gaussians start .. start + CHUNK - 1 (fewer at the end) into camera c, writing every output slot.
 
-    The geometry is one loop of straight-line code, which LLVM vectorises across Gaussians: no scratch arrays, no
-    branches (selects), and five [N] arrays for means2d and conics, whose [C, N, k] rows it would have to scatter
-    into (and rows of one [5, N] array might overlap, for all LLVM knows); they are copied over after. A Gaussian
-    on the camera plane (z = 0) gets zeros."""
+    The geometry is one loop of straight-line code, which LLVM vectorises across Gaussians: no scratch arrays and
+    no branches (selects); means2d and conics come flattened (`_put`). A Gaussian on the camera plane (z = 0) gets
+    zeros."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
     rw = (Rw[0, 0], Rw[0, 1], Rw[0, 2], Rw[1, 0], Rw[1, 1], Rw[1, 2], Rw[2, 0], Rw[2, 1], Rw[2, 2])
     tx, ty, tz = viewmats[c, 0, 3], viewmats[c, 1, 3], viewmats[c, 2, 3]
@@ -160,15 +168,11 @@ def _project_chunk(c, start, means, quats, scales, viewmats, Ks, width, height, 
         radius = np.ceil(3.0 * math.sqrt(max(v1, 0.0)))  # np.ceil: a float, where math.ceil converts to int
         visible = (det > 0) & (near < z) & (z < far)
         inside = (u + radius > 0) & (u - radius < width) & (v + radius > 0) & (v - radius < height)
-        u_all[g] = u if front else 0.0
-        v_all[g] = v if front else 0.0
-        con_a[g] = cc * inv_det if front else 0.0
-        con_b[g] = -b * inv_det if front else 0.0
-        con_c[g] = a * inv_det if front else 0.0
+        cg = np.uint64(c * means.shape[0] + g)
+        _put(means2d, cg, (u if front else 0.0, v if front else 0.0))
+        inv_det = inv_det if front else 0.0
+        _put(conics, cg, (cc * inv_det, -b * inv_det, a * inv_det))
         radii[c, g] = np.int32(radius) if visible & inside & front else np.int32(0)
-    for g in range(start, stop):
-        means2d[c, g, 0], means2d[c, g, 1] = u_all[g], v_all[g]
-        conics[c, g, 0], conics[c, g, 1], conics[c, g, 2] = con_a[g], con_b[g], con_c[g]
 
 
 @njit(cache=True, _nrt=False, error_model="numpy", fastmath=True)
@@ -201,12 +205,12 @@ def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     depths = np.zeros((c_n, n), dt)
     radii = np.zeros((c_n, n), np.int32)
     colors = np.zeros((c_n, n, 3), dt)
-    planar = (np.empty(n, dt), np.empty(n, dt), np.empty(n, dt), np.empty(n, dt), np.empty(n, dt))
+    flat = (means2d.reshape(2 * c_n * n), conics.reshape(3 * c_n * n))  # views, for `_put`
     for c in range(c_n):
         Rw = viewmats[c, :3, :3].astype(np.float64)
         for chunk in prange((n + CHUNK - 1) // CHUNK):
-            _project_chunk(c, chunk * CHUNK, means, quats, scales, viewmats, Ks, width, height, near, far, means2d,
-                           conics, depths, radii, Rw, *planar)
+            _project_chunk(c, chunk * CHUNK, means, quats, scales, viewmats, Ks, width, height, near, far, *flat,
+                           depths, radii, Rw)
             if sh_degree >= 0:
                 _sh_chunk(c, chunk * CHUNK, means, coeffs, sh_degree, campos, depths, colors, np.empty(16))
     return means2d, conics, depths, radii, colors
@@ -320,15 +324,6 @@ def _accumulate(g, g_mean, g_cov, mx, my, mz, s00, s01, s02, s11, s12, s22):
     s11[g] += g_cov[4]
     s12[g] += g_cov[5]
     s22[g] += g_cov[8]
-
-
-@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _put(flat, g, values):
-    """Row g of a flattened [N, len(values)] array. A constant row length and an unsigned index let LLVM vectorise
-    a loop of these stores; with an [N, k] array's runtime strides, rows might overlap for all it knows."""
-    row = g * np.uint64(len(values))
-    for k in range(len(values)):
-        flat[row + np.uint64(k)] = values[k]
 
 
 @njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=NoAlias)
