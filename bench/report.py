@@ -378,6 +378,27 @@ def other_section(name: str, data: dict) -> Section:
     return lines, {}
 
 
+def real_runs_summary(files: list[tuple[Path, dict]]) -> list[str]:
+    """One table of every NGS run on each real scan (a Gaussian budget is part of the scan's line), across files: a
+    single run's SOS moves with the seed and the revision, and only the spread says whether a change moved it."""
+    lines: list[str] = []
+    for scan in sorted({data["scan"] for _, data in files if "ngs" in data["methods"]}):
+        runs = [(path, data, data["methods"]["ngs"]) for path, data in files
+                if data["scan"] == scan and "ngs" in data["methods"]]
+        rows = [[path.name, data["seed"], num(r["num_gaussians"]), num(r["steps"]), num(r["train_seconds"], 0),
+                 num(r["psnr"], 2), num(r["sos"])] for path, data, r in runs]
+        lines += [f"NGS on {scan}: every run, one a file.", ""]
+        lines += table(["file", "seed", "Gaussians", "steps", "train s", "PSNR dB", "SOS"], rows)
+        if len(runs) > 1:
+            sos = sorted(r["sos"] for _, _, r in runs)
+            seconds = [r["train_seconds"] for _, _, r in runs]
+            lines += [f"Over these {len(runs)} runs: SOS median {(sos[(len(sos) - 1) // 2] + sos[len(sos) // 2]) / 2:.3f}, "
+                      f"range {sos[0]:.3f} to {sos[-1]:.3f}; train s {min(seconds):.0f} to {max(seconds):.0f}.", ""]
+    return lines
+
+
+SUMMARIES: dict[str, Callable[[list[tuple[Path, dict]]], list[str]]] = {"real": real_runs_summary}
+
 SECTIONS: dict[str, tuple[str, Callable[[str, dict], Section]]] = {
     "demo": ("The demo, stage by stage", demo_section),
     "scan": ("Scanning on the simulated rig", scan_section),
@@ -436,6 +457,8 @@ def render(results: Path, out: Path) -> tuple[str, dict[Path, str]]:
         if title != current:
             lines += [f"## {title}", ""]
             current = title
+            if kind in SUMMARIES:
+                lines += SUMMARIES[kind]([item for item in loaded if kind_of(item[1]) == kind])
         script = SCRIPTS.get(kind, data.get("benchmark") or kind)
         body, drawn = section(path.stem, data)
         lines += [f"### {path.name}", "",

@@ -61,6 +61,24 @@ def test_a_results_file_of_an_unknown_bench_still_gets_its_figures(results_copy:
     assert "| wall_s | 12.500 |" in section and "`rows`" in section
 
 
+def test_real_photos_open_with_every_ngs_run_on_a_scan_and_the_spread_of_its_sos(results_copy: Path, tmp_path: Path):
+    scan = "a test scan"
+    for name, seed, sos in (("real_a.json", 0, 0.93), ("real_b.json", 1, 0.97), ("real_c.json", 2, 0.95)):
+        run = {"psnr": 31.5, "psnr_star": 31.5, "ssim": 0.97, "sos": sos, "num_gaussians": 60000, "steps": 5000,
+               "planned_steps": 2500, "train_seconds": 300.0 + seed, "held_out_curve": [{"step": 2500, "sos": sos}]}
+        (results_copy / name).write_text(json.dumps({"benchmark": "real", "scan": scan, "presets": ["fast"],
+                                                     "seed": seed, "peer": "none", "methods": {"ngs": run},
+                                                     "ngs_psnr_gap_to_best_db": None}))
+    out = tmp_path / "evidence.md"
+    done = run_report(results_copy, out)
+    assert done.returncode == 0, done.stderr
+    summary = out.read_text().split("## NGS on real photos", 1)[1].split("###", 1)[0]
+    ours = summary.split(f"NGS on {scan}: every run", 1)[1].split("NGS on ", 1)[0]
+    assert [line.split(" | ")[0] for line in ours.splitlines() if line.startswith("| real_")] == \
+        ["| real_a.json", "| real_b.json", "| real_c.json"]
+    assert "Over these 3 runs: SOS median 0.950, range 0.930 to 0.970; train s 300 to 302." in ours
+
+
 def test_a_broken_results_file_is_named_without_a_traceback(results_copy: Path, tmp_path: Path):
     (results_copy / "broken.json").write_text('{"benchmark": ')
     out = tmp_path / "evidence.md"
