@@ -125,6 +125,14 @@ CHUNK = 64
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
+def _at(flat, row, width, k):
+    """Element k of row `row` of a flattened [rows, width] array. An [N, k] array's strides are runtime values to
+    LLVM: it vectorised the projection's backward only behind a check that the row length is 1, so the vector code
+    never ran, and the forward with gathers. A constant width and an unsigned index give it unit strides."""
+    return flat[row * np.uint64(width) + np.uint64(k)]
+
+
+@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
 def _put(flat, g, values):
     """Row g of a flattened [N, len(values)] array. A constant row length and an unsigned index let LLVM vectorise
     a loop of these stores; with an [N, k] array's runtime strides, rows might overlap for all it knows."""
@@ -139,14 +147,14 @@ def _project_chunk(c, start, means, quats, scales, viewmats, Ks, width, height, 
     """Project Gaussians start .. start + CHUNK - 1 (fewer at the end) into camera c, writing every output slot.
 
     The geometry is one loop of straight-line code, which LLVM vectorises across Gaussians: no scratch arrays and
-    no branches (selects); means2d and conics come flattened (`_put`). A Gaussian on the camera plane (z = 0) gets
-    zeros."""
+    no branches (selects); means, quats and scales come flattened (`_at`), means2d and conics too (`_put`). A
+    Gaussian on the camera plane (z = 0) gets zeros."""
     fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
     rw = (Rw[0, 0], Rw[0, 1], Rw[0, 2], Rw[1, 0], Rw[1, 1], Rw[1, 2], Rw[2, 0], Rw[2, 1], Rw[2, 2])
     tx, ty, tz = viewmats[c, 0, 3], viewmats[c, 1, 3], viewmats[c, 2, 3]
-    stop = min(means.shape[0], start + CHUNK)
-    for g in range(start, stop):
-        px, py, pz = means[g, 0], means[g, 1], means[g, 2]
+    stop = min(depths.shape[1], start + CHUNK)
+    for g in range(np.uint64(start), np.uint64(stop)):
+        px, py, pz = _at(means, g, 3, 0), _at(means, g, 3, 1), _at(means, g, 3, 2)
         x = rw[0] * px + rw[1] * py + rw[2] * pz + tx
         y = rw[3] * px + rw[4] * py + rw[5] * pz + ty
         z = rw[6] * px + rw[7] * py + rw[8] * pz + tz
@@ -155,8 +163,8 @@ def _project_chunk(c, start, means, quats, scales, viewmats, Ks, width, height, 
         zs = z if front else 1.0  # anything finite: a Gaussian on the camera plane gets zeros below
         u = fx * x / zs + cx
         v = fy * y / zs + cy
-        rot = _unit_rotation(quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])[5]
-        k = _covariances(rot, scales[g, 0], scales[g, 1], scales[g, 2], rw)[1]
+        rot = _unit_rotation(_at(quats, g, 4, 0), _at(quats, g, 4, 1), _at(quats, g, 4, 2), _at(quats, g, 4, 3))[5]
+        k = _covariances(rot, _at(scales, g, 3, 0), _at(scales, g, 3, 1), _at(scales, g, 3, 2), rw)[1]
         j00, j02, j11, j12, _, _, _, _ = _jacobian(x, y, zs, fx, fy, cx, cy, width, height)
         a = j00 * j00 * k[0] + 2 * j00 * j02 * k[2] + j02 * j02 * k[8] + EPS2D
         b = j00 * j11 * k[1] + j00 * j12 * k[2] + j02 * j11 * k[7] + j02 * j12 * k[8]
@@ -168,7 +176,7 @@ def _project_chunk(c, start, means, quats, scales, viewmats, Ks, width, height, 
         radius = np.ceil(3.0 * math.sqrt(max(v1, 0.0)))  # np.ceil: a float, where math.ceil converts to int
         visible = (det > 0) & (near < z) & (z < far)
         inside = (u + radius > 0) & (u - radius < width) & (v + radius > 0) & (v - radius < height)
-        cg = np.uint64(c * means.shape[0] + g)
+        cg = np.uint64(c) * np.uint64(depths.shape[1]) + g
         _put(means2d, cg, (u if front else 0.0, v if front else 0.0))
         inv_det = inv_det if front else 0.0
         _put(conics, cg, (cc * inv_det, -b * inv_det, a * inv_det))
@@ -206,10 +214,11 @@ def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     radii = np.zeros((c_n, n), np.int32)
     colors = np.zeros((c_n, n, 3), dt)
     flat = (means2d.reshape(2 * c_n * n), conics.reshape(3 * c_n * n))  # views, for `_put`
+    flat_in = (means.reshape(3 * n), quats.reshape(4 * n), scales.reshape(3 * n))  # and for `_at`
     for c in range(c_n):
         Rw = viewmats[c, :3, :3].astype(np.float64)
         for chunk in prange((n + CHUNK - 1) // CHUNK):
-            _project_chunk(c, chunk * CHUNK, means, quats, scales, viewmats, Ks, width, height, near, far, *flat,
+            _project_chunk(c, chunk * CHUNK, *flat_in, viewmats, Ks, width, height, near, far, *flat,
                            depths, radii, Rw)
             if sh_degree >= 0:
                 _sh_chunk(c, chunk * CHUNK, means, coeffs, sh_degree, campos, depths, colors, np.empty(16))
@@ -220,14 +229,6 @@ def project_fwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
 def _transposed(a):
     """A^T of a row-major 3 x 3 tuple [9]."""
     return a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8]
-
-
-@njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _at(flat, row, width, k):
-    """Element k of row `row` of a flattened [rows, width] array. Indexing [N, k] arrays in a loop, LLVM vectorises
-    only behind a runtime check that the row length is 1 (it speculates on strides it cannot see), so the vector
-    code never runs; a constant width and an unsigned index give it unit strides to work with."""
-    return flat[row * np.uint64(width) + np.uint64(k)]
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
