@@ -49,28 +49,17 @@ def _sh_basis(x, y, z, out):
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
-def _sh_basis_grad(x, y, z, gx, gy, gz):
-    """d basis_k / d(x, y, z) for k < 16 into gx, gy, gz [16]."""
+def _sh_basis_grad(x, y, z):
+    """d basis_k / d(x, y, z) for k < 16: three tuples [16], which stay in registers."""
     xx, yy, zz = x * x, y * y, z * z
-    for k in range(16):
-        gx[k] = 0.0
-        gy[k] = 0.0
-        gz[k] = 0.0
-    gy[1] = -SH_C1
-    gz[2] = SH_C1
-    gx[3] = -SH_C1
-    gx[4], gy[4] = C20 * y, C20 * x
-    gy[5], gz[5] = C21 * z, C21 * y
-    gx[6], gy[6], gz[6] = -2 * C22 * x, -2 * C22 * y, 4 * C22 * z
-    gx[7], gz[7] = C23 * z, C23 * x
-    gx[8], gy[8] = 2 * C24 * x, -2 * C24 * y
-    gx[9], gy[9] = 6 * C30 * x * y, C30 * (3 * xx - 3 * yy)
-    gx[10], gy[10], gz[10] = C31 * y * z, C31 * x * z, C31 * x * y
-    gx[11], gy[11], gz[11] = -2 * C32 * x * y, C32 * (4 * zz - xx - 3 * yy), 8 * C32 * y * z
-    gx[12], gy[12], gz[12] = -6 * C33 * x * z, -6 * C33 * y * z, C33 * (6 * zz - 3 * xx - 3 * yy)
-    gx[13], gy[13], gz[13] = C34 * (4 * zz - 3 * xx - yy), -2 * C34 * x * y, 8 * C34 * x * z
-    gx[14], gy[14], gz[14] = 2 * C35 * x * z, -2 * C35 * y * z, C35 * (xx - yy)
-    gx[15], gy[15] = C36 * (3 * xx - 3 * yy), -6 * C36 * x * y
+    gx = (0.0, 0.0, 0.0, -SH_C1, C20 * y, 0.0, -2 * C22 * x, C23 * z, 2 * C24 * x, 6 * C30 * x * y, C31 * y * z,
+          -2 * C32 * x * y, -6 * C33 * x * z, C34 * (4 * zz - 3 * xx - yy), 2 * C35 * x * z, C36 * (3 * xx - 3 * yy))
+    gy = (0.0, -SH_C1, 0.0, 0.0, C20 * x, C21 * z, -2 * C22 * y, 0.0, -2 * C24 * y, C30 * (3 * xx - 3 * yy),
+          C31 * x * z, C32 * (4 * zz - xx - 3 * yy), -6 * C33 * y * z, -2 * C34 * x * y, -2 * C35 * y * z,
+          -6 * C36 * x * y)
+    gz = (0.0, 0.0, SH_C1, 0.0, 0.0, C21 * y, 4 * C22 * z, C23 * x, 0.0, 0.0, C31 * x * y, 8 * C32 * y * z,
+          C33 * (6 * zz - 3 * xx - 3 * yy), 8 * C34 * x * z, C35 * (xx - yy), 0.0)
+    return gx, gy, gz
 
 
 @njit(cache=True, forceinline=True, _nrt=False, error_model="numpy", fastmath=True)
@@ -330,7 +319,7 @@ def _accumulate(g, g_mean, g_cov, mx, my, mz, s00, s01, s02, s11, s12, s22):
 @njit(cache=True, _nrt=False, error_model="numpy", fastmath=True, pipeline_class=NoAlias)
 def _project_bwd_chunk(start, means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii,
                        colors, Rws, g_means2d, g_conics, g_depths, g_colors, want_pose, g_means, g_quats, g_scales,
-                       g_coeffs, pose_sums, mx, my, mz, s00, s01, s02, s11, s12, s22, basis, bx, by, bz, g_sh):
+                       g_coeffs, pose_sums, mx, my, mz, s00, s01, s02, s11, s12, s22, basis, g_sh):
     """The backward of Gaussians start .. start + CHUNK - 1 (fewer at the end) over every camera.
 
     The geometry runs camera by camera in loops over Gaussians that LLVM vectorises, as in `_project_chunk`: the
@@ -378,7 +367,7 @@ def _project_bwd_chunk(start, means, quats, scales, coeffs, sh_degree, viewmats,
             nd = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
             u0, u1, u2 = d0 / nd, d1 / nd, d2 / nd
             _sh_basis(u0, u1, u2, basis)
-            _sh_basis_grad(u0, u1, u2, bx, by, bz)
+            bx, by, bz = _sh_basis_grad(u0, u1, u2)
             gd0, gd1, gd2 = 0.0, 0.0, 0.0
             for k in range(used):
                 g_sh[3 * k] += basis[k] * g_r
@@ -437,7 +426,7 @@ def project_bwd(means, quats, scales, coeffs, sh_degree, viewmats, Ks, campos, w
     for chunk in prange(chunks):
         _project_bwd_chunk(chunk * CHUNK, *flat_in, coeffs, sh_degree, viewmats, Ks, campos, width, height, radii,
                            colors, Rws, *flat_up, g_depths, g_colors, want_pose, *flat, g_coeffs, pose_sums, *sums,
-                           np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(48))
+                           np.empty(16), np.empty(48))
     pose = np.zeros((c_n, 15))
     for c in range(c_n):
         for chunk in range(pose_sums.shape[1]):
