@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -390,10 +391,10 @@ def real_runs_summary(files: list[tuple[Path, dict]]) -> list[str]:
         lines += [f"NGS on {scan}: every run, one a file.", ""]
         lines += table(["file", "seed", "Gaussians", "steps", "train s", "PSNR dB", "SOS"], rows)
         if len(runs) > 1:
-            sos = sorted(r["sos"] for _, _, r in runs)
+            sos = [r["sos"] for _, _, r in runs]
             seconds = [r["train_seconds"] for _, _, r in runs]
-            lines += [f"Over these {len(runs)} runs: SOS median {(sos[(len(sos) - 1) // 2] + sos[len(sos) // 2]) / 2:.3f}, "
-                      f"range {sos[0]:.3f} to {sos[-1]:.3f}; train s {min(seconds):.0f} to {max(seconds):.0f}.", ""]
+            lines += [f"Over these {len(runs)} runs: SOS median {statistics.median(sos):.3f}, range {min(sos):.3f} "
+                      f"to {max(sos):.3f}; train s {min(seconds):.0f} to {max(seconds):.0f}.", ""]
     return lines
 
 
